@@ -1,0 +1,114 @@
+"""Every tunable of the pipeline: one frozen dataclass per stage, defaults documented in code.
+
+Defaults follow the paper (section III) where it gives a value; the rest are ours and say why.
+Override with ``dataclasses.replace`` or ``RegisterConfig.from_dict`` (file / CLI).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from typing import Any, Literal
+
+from .errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class VanishingConfig:
+    """2D vanishing directions by multiple RANSAC on interpretation-plane normals (Rother 2002)."""
+
+    num_clusters: int = 5  # paper: c = 5 clusters before merging
+    inlier_angle_deg: float = 1.5  # a segment belongs to a VD if its plane passes within this angle of it
+    merge_angle_deg: float = 5.0  # VDs closer than this are one (paper: merge near-duplicates)
+    ransac_iterations: int = 200
+    min_lines: int = 3  # smaller clusters are not a direction
+    top_k: int = 3  # paper: "the former two or three"
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class ParallelConfig:
+    """3D parallel clusters by RANSAC on segment directions."""
+
+    num_clusters: int = 5  # paper: c = 5
+    parallel_angle_deg: float = 1.0  # paper: 1 degree for 3D parallel lines
+    merge_angle_deg: float = 3.0
+    ransac_iterations: int = 100
+    min_lines: int = 3
+    top_k: int = 3
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class RotationConfig:
+    """Rotation candidates from VD <-> 3D direction pairings."""
+
+    pair_angle_tolerance_deg: float = 5.0  # angle(VD1, VD2) must match angle(D1, D2) within this
+    third_pair_tolerance_deg: float = 5.0  # a third pair validates a candidate within this
+    dedupe_angle_deg: float = 1.0  # candidates closer than this are one
+    max_candidates: int = 24
+
+
+@dataclass(frozen=True)
+class MatchConfig:
+    """When is a 2D segment and a projected 3D segment a correspondence (shared by every stage)."""
+
+    distance_px: float = 6.0  # both projected endpoints within this of the 2D segment's infinite line
+    min_overlap: float = 0.5  # paper: projection overlaps > 0.5 of the 2D segment's length
+    min_depth_m: float = 1e-3  # endpoints must lie in front of the camera
+
+
+@dataclass(frozen=True)
+class TranslationConfig:
+    """Translation and correspondences per rotation candidate by hypothesis testing."""
+
+    method: Literal["search", "ransac"] = "search"  # "ransac": the paper's random 3-pair RANSAC
+    ransac_iterations: int = 2000
+    stop_inlier_fraction: float = 0.7  # paper: stop at 70 % inliers
+    coplanar_angle_deg: float = 2.0  # pair candidates: 3D direction within this of the 2D plane
+    seed: int = 0
+
+
+@dataclass(frozen=True)
+class RefineConfig:
+    """GTSAM refinement: endpoint-to-line reprojection, robust kernel, reject and re-associate."""
+
+    kernel: Literal["huber", "cauchy", "tukey", "none"] = "huber"
+    kernel_px: float = 2.0
+    outlier_px: float = 5.0  # a match whose worst endpoint is farther than this is dropped
+    max_rounds: int = 5  # optimise -> reject -> re-associate rounds
+    max_iterations: int = 50  # Levenberg-Marquardt iterations per round
+    reassociate: bool = True
+
+
+@dataclass(frozen=True)
+class RegisterConfig:
+    """Everything ``register`` needs; ``method="ransac6"`` runs the paper's baseline instead."""
+
+    method: Literal["vp", "ransac6"] = "vp"
+    min_lines2d: int = 6
+    min_lines3d: int = 6
+    min_inliers: int = 6  # fewer matches than this is not a pose
+    vanishing: VanishingConfig = field(default_factory=VanishingConfig)
+    parallel: ParallelConfig = field(default_factory=ParallelConfig)
+    rotation: RotationConfig = field(default_factory=RotationConfig)
+    match: MatchConfig = field(default_factory=MatchConfig)
+    translation: TranslationConfig = field(default_factory=TranslationConfig)
+    refine: RefineConfig = field(default_factory=RefineConfig)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> RegisterConfig:
+        """Returns the default config with the keys of ``d`` (nested per section) overridden."""
+        return _override(cls(), d, "config")
+
+
+def _override(obj: Any, d: dict[str, Any], path: str) -> Any:
+    if not isinstance(d, dict):
+        raise InvalidInputError(f"{path} must be a mapping, got {type(d).__name__}")
+    known = {f.name: f for f in fields(obj)}
+    changes = {}
+    for key, value in d.items():
+        if key not in known:
+            raise InvalidInputError(f"unknown option {path}.{key}; known: {', '.join(known)}")
+        current = getattr(obj, key)
+        changes[key] = _override(current, value, f"{path}.{key}") if is_dataclass(current) else value
+    return replace(obj, **changes)

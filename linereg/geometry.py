@@ -1,0 +1,116 @@
+"""Pose and line geometry shared by every stage; the one place conventions live.
+
+- ``cam_from_world``: (4, 4) float64 with ``x_cam = R @ x_world + t`` (``R = T[:3, :3]``, ``t = T[:3, 3]``).
+- 2D segments: (N, 4) float64 ``x1, y1, x2, y2`` pixels; 3D segments: (M, 6) float64 ``X1, Y1, Z1, X2, Y2, Z2``.
+- The interpretation plane of a 2D segment is the plane through the camera centre and the segment; its
+  unit normal ``n`` (camera frame) satisfies ``n . x_cam = 0`` for every point of the matching 3D line
+  (paper eq. "coplanar": ``(R P + t) . n = 0``).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .camera import Camera
+
+
+def make_cam_from_world(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Returns (4, 4) float64 ``cam_from_world`` from a (3, 3) rotation and a (3,) translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=np.float64).reshape(3)
+    return T
+
+
+def invert(a_from_b: np.ndarray) -> np.ndarray:
+    """Returns ``b_from_a`` for a rigid (4, 4) transform."""
+    R, t = a_from_b[:3, :3], a_from_b[:3, 3]
+    return make_cam_from_world(R.T, -R.T @ t)
+
+
+def camera_center(cam_from_world: np.ndarray) -> np.ndarray:
+    """Returns the (3,) camera centre in world coordinates, ``-R^T t``."""
+    return -cam_from_world[:3, :3].T @ cam_from_world[:3, 3]
+
+
+def transform_points(a_from_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) points mapped by a (4, 4) rigid transform."""
+    return points_b @ a_from_b[:3, :3].T + a_from_b[:3, 3]
+
+
+def transform_segments(a_from_b: np.ndarray, segments_b: np.ndarray) -> np.ndarray:
+    """Returns (M, 6) segments with both endpoints mapped by a (4, 4) rigid transform."""
+    ends = transform_points(a_from_b, segments_b.reshape(-1, 3))
+    return ends.reshape(-1, 6)
+
+
+def nearest_rotation(M: np.ndarray) -> np.ndarray:
+    """Returns the proper rotation closest to M in Frobenius norm (orthogonal Procrustes via SVD)."""
+    U, _, Vt = np.linalg.svd(M)
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt)) or 1.0])
+    return U @ D @ Vt
+
+
+def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
+    """Returns the angle in degrees of ``R_a^T R_b`` (paper: ``acos((trace(R_a^T R_b) - 1) / 2)``)."""
+    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
+    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+
+
+def pose_errors(cam_from_world: np.ndarray, gt_cam_from_world: np.ndarray) -> tuple[float, float, float]:
+    """Returns (rotation error deg, position error m, ``|t_e| / |t_gt|``) of an estimate against truth.
+
+    Position error compares camera centres; the relative error follows the paper (``||t_e|| / ||t_GT||``).
+    """
+    rot = rotation_error_deg(cam_from_world[:3, :3], gt_cam_from_world[:3, :3])
+    pos = float(np.linalg.norm(camera_center(cam_from_world) - camera_center(gt_cam_from_world)))
+    t_gt = gt_cam_from_world[:3, 3]
+    rel = float(np.linalg.norm(cam_from_world[:3, 3] - t_gt) / max(np.linalg.norm(t_gt), 1e-12))
+    return rot, pos, rel
+
+
+def pixels_to_rays(camera: Camera, pixels: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) homogeneous normalized rays ``K^-1 [u, v, 1]`` for (N, 2) undistorted pixels."""
+    rays = np.empty((len(pixels), 3))
+    rays[:, 0] = (pixels[:, 0] - camera.cx) / camera.fx
+    rays[:, 1] = (pixels[:, 1] - camera.cy) / camera.fy
+    rays[:, 2] = 1.0
+    return rays
+
+
+def interpretation_normals(lines2d: np.ndarray, camera: Camera) -> np.ndarray:
+    """Returns (N, 3) unit normals (camera frame) of the planes through the camera centre and each segment.
+
+    Sign: ``n = normalize(ray1 x ray2)``, so it flips if the segment's endpoints are swapped.
+    """
+    r1 = pixels_to_rays(camera, lines2d[:, 0:2])
+    r2 = pixels_to_rays(camera, lines2d[:, 2:4])
+    n = np.cross(r1, r2)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def line_coefficients(lines2d: np.ndarray) -> np.ndarray:
+    """Returns (N, 3) ``(A, B, C)`` of each segment's infinite line ``A x + B y + C = 0``, ``A^2 + B^2 = 1``."""
+    p1 = np.c_[lines2d[:, 0:2], np.ones(len(lines2d))]
+    p2 = np.c_[lines2d[:, 2:4], np.ones(len(lines2d))]
+    H = np.cross(p1, p2)
+    return H / np.linalg.norm(H[:, :2], axis=1, keepdims=True)
+
+
+def project_points(camera: Camera, points_cam: np.ndarray) -> np.ndarray:
+    """Returns (N, 2) undistorted pixels of (N, 3) camera-frame points (no check that Z > 0)."""
+    z = points_cam[:, 2]
+    return np.c_[camera.fx * points_cam[:, 0] / z + camera.cx, camera.fy * points_cam[:, 1] / z + camera.cy]
+
+
+def segment_lengths(lines: np.ndarray) -> np.ndarray:
+    """Returns (N,) lengths of (N, 4) 2D or (N, 6) 3D segments."""
+    d = lines.shape[1] // 2
+    return np.linalg.norm(lines[:, d:] - lines[:, :d], axis=1)
+
+
+def segment_directions(lines: np.ndarray) -> np.ndarray:
+    """Returns (N, d) unit directions (second endpoint minus first) of 2D or 3D segments."""
+    d = lines.shape[1] // 2
+    v = lines[:, d:] - lines[:, :d]
+    return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
