@@ -9,16 +9,36 @@
 from .camera import Camera
 from .config import RegisterConfig
 from .errors import FileFormatError, InvalidInputError, LineregError
-from .pipeline import register
 from .registration import Registration
 
 __all__ = [
     "Camera",
+    "LineMap",
+    "Prior",
     "FileFormatError",
     "InvalidInputError",
     "LineregError",
     "RegisterConfig",
     "Registration",
+    "localize",
+    "localize_segments",
     "register",
 ]
 __version__ = "0.1.0"
+
+# Heavy stages (gtsam, open3d) load on first use, so ``import linereg`` stays fast for clients and the CLI.
+_LAZY = {
+    "register": "linereg.pipeline",
+    "localize": "linereg.localize",
+    "localize_segments": "linereg.localize",
+    "Prior": "linereg.localize",
+    "LineMap": "linereg.linemap",
+}
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        import importlib
+
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'linereg' has no attribute {name!r}")
