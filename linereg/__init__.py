@@ -1,9 +1,9 @@
 """linereg: camera pose in an untextured 3D point-cloud map from line segments alone.
 
-    import linereg
-    cam = linereg.Camera(fx=800, fy=800, cx=320, cy=240, width=640, height=480)
-    res = linereg.register(lines2d, lines3d, cam)   # (N, 4) pixels, (M, 6) world metres
-    res.success, res.cam_from_world, res.matches, res.covariance
+import linereg
+cam = linereg.Camera(fx=800, fy=800, cx=320, cy=240, width=640, height=480)
+res = linereg.register(lines2d, lines3d, cam)   # (N, 4) pixels, (M, 6) world metres
+res.success, res.cam_from_world, res.matches, res.covariance
 """
 
 from .camera import Camera
@@ -13,11 +13,11 @@ from .registration import Registration
 
 __all__ = [
     "Camera",
-    "LineMap",
-    "Prior",
     "FileFormatError",
     "InvalidInputError",
+    "LineMap",
     "LineregError",
+    "Prior",
     "RegisterConfig",
     "Registration",
     "localize",
@@ -29,9 +29,9 @@ __version__ = "0.1.0"
 # Heavy stages (gtsam, open3d) load on first use, so ``import linereg`` stays fast for clients and the CLI.
 _LAZY = {
     "register": "linereg.pipeline",
-    "localize": "linereg.localize",
-    "localize_segments": "linereg.localize",
-    "Prior": "linereg.localize",
+    "localize": "linereg.localization",
+    "localize_segments": "linereg.localization",
+    "Prior": "linereg.localization",
     "LineMap": "linereg.linemap",
 }
 

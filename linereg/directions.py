@@ -27,3 +27,14 @@ class DirectionClusters:
     def members(self, k: int) -> np.ndarray:
         """Returns the (n_k,) indices of the segments of cluster k."""
         return np.flatnonzero(self.labels == k)
+
+
+def subset_clusters(clusters: DirectionClusters, index: np.ndarray, lengths: np.ndarray) -> DirectionClusters:
+    """Returns the clusters restricted to segments ``index`` (e.g. the visible part of a map).
+
+    lengths: (len(index),) lengths of those segments, for the support. Directions keep their order even if
+    the subset changes which cluster is strongest (the rotation stage only pairs them).
+    """
+    labels = clusters.labels[index]
+    support = np.array([lengths[labels == k].sum() for k in range(len(clusters))], dtype=np.float64)
+    return DirectionClusters(clusters.directions, labels, support)

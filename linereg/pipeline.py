@@ -71,9 +71,7 @@ def register_undistorted(
     # III-C, eq. (coplanar): translation and correspondences per candidate; most inliers wins (Algorithm 2)
     with timer("translation"):
         hypotheses = [
-            estimate_translation(
-                lines2d, lines3d, camera, c.R, clusters3d, config.translation, config.match
-            )
+            estimate_translation(lines2d, lines3d, camera, c.R, clusters3d, config.translation, config.match)
             for c in candidates
         ]
     order = np.argsort([-h.num_inliers for h in hypotheses], kind="stable")

@@ -1,0 +1,132 @@
+"""``linereg localize --map MAP --camera CAMERA IMAGE... --out poses.json [--tum F] [--overlay DIR]``.
+
+Localizes many images in one map: a process pool (each worker loads the map once), results saved
+atomically every few images so a killed batch loses nothing and ``--resume`` skips what is done.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+from ..errors import InvalidInputError
+from .progress import Progress
+
+_worker_state: dict = {}
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("localize", help="localize images in a line map", description=__doc__)
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE")
+    p.add_argument("--map", required=True, type=Path, help="line map from `linereg map build`")
+    p.add_argument(
+        "--camera", required=True, type=Path, help="camera JSON (shared or per image) or COLMAP cameras.txt"
+    )
+    p.add_argument("--out", type=Path, default=Path("poses.json"), help="JSON results (default poses.json)")
+    p.add_argument("--tum", type=Path, help="also write the successful poses as a TUM trajectory")
+    p.add_argument("--overlay", type=Path, metavar="DIR", help="write one overlay PNG per image here")
+    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
+    p.add_argument("--resume", action="store_true", help="skip images already in --out")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from .. import io
+
+    if args.workers < 1:
+        raise InvalidInputError(f"--workers must be >= 1, got {args.workers}")
+    missing = [str(p) for p in args.images if not p.is_file()]
+    if missing:
+        raise InvalidInputError(f"image file(s) not found: {', '.join(missing[:5])}")
+    cameras = io.read_cameras(args.camera)
+    jobs = [(str(p), _camera_for(cameras, p, args.camera)) for p in args.images]
+    results = io.read_json(args.out) if args.resume and args.out.exists() else {}
+    jobs = [j for j in jobs if j[0] not in results]
+    overlay_dir = str(args.overlay) if args.overlay else None
+    progress = Progress(len(jobs), "localize")
+    init = (str(args.map), overlay_dir)
+    last_save = time.monotonic()
+    with _executor(args.workers, init) as pool:
+        for path, record in pool.map(_localize_one, jobs):
+            results[path] = record
+            progress.update(1, f"{Path(path).name}: {'ok' if record['success'] else 'failed'}")
+            if time.monotonic() - last_save > 5.0:  # periodic atomic save: a killed batch resumes here
+                io.write_json_atomic(args.out, results)
+                last_save = time.monotonic()
+    progress.close()
+    io.write_json_atomic(args.out, results)
+    if args.tum:
+        ok = [(p, r) for p, r in results.items() if r["success"]]
+        io.write_tum(args.tum, [Path(p).name for p, _ in ok], [r["cam_from_world"] for _, r in ok])
+    done = sum(r["success"] for r in results.values())
+    print(f"localized {done}/{len(results)} images -> {args.out}", file=sys.stderr)
+    return 0
+
+
+def _camera_for(cameras, image: Path, source: Path):
+    if not isinstance(cameras, dict):
+        return cameras
+    for key in (str(image), image.name, image.stem):
+        if key in cameras:
+            return cameras[key]
+    raise InvalidInputError(f"{source}: no camera for image {image.name}")
+
+
+class _InlineExecutor:
+    """The same interface as a process pool, in this process (workers=1: no pickling, easy debugging)."""
+
+    def __init__(self, init: tuple) -> None:
+        _init_worker(*init)
+
+    def map(self, fn, items):
+        return map(fn, items)
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+
+def _executor(workers: int, init: tuple):
+    if workers == 1:
+        return _InlineExecutor(init)
+    return ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init)
+
+
+def _init_worker(map_path: str, overlay_dir: str | None) -> None:
+    from ..linemap import LineMap
+
+    _worker_state["map"] = LineMap.load(map_path)
+    _worker_state["overlay_dir"] = overlay_dir
+
+
+def _localize_one(job: tuple) -> tuple[str, dict]:
+    from .. import io
+    from ..lines2d import detect
+    from ..localization import localize_segments
+    from ..overlay import draw_overlay
+
+    path, camera = job
+    line_map = _worker_state["map"]
+    try:
+        image = io.read_image(path)
+        start = time.perf_counter()
+        lines2d = detect(image, camera)
+        detect_s = time.perf_counter() - start
+        result = localize_segments(lines2d, line_map, camera.undistorted())
+        result.timings = {"lines2d": detect_s} | result.timings
+        result.timings["total"] = result.timings.get("total", 0.0) + detect_s
+    except Exception as e:  # one bad image must not end a batch of thousands
+        return path, {"success": False, "reason": f"{type(e).__name__}: {e}"}
+    overlay_dir = _worker_state["overlay_dir"]
+    if overlay_dir:
+        picture = draw_overlay(image, camera.undistorted(), lines2d, line_map.segments, result)
+        io.write_image_atomic(os.path.join(overlay_dir, Path(path).stem + ".png"), picture)
+    record = result.to_dict()
+    record.pop("matches")
+    return path, record
