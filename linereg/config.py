@@ -81,6 +81,17 @@ class RefineConfig:
 
 
 @dataclass(frozen=True)
+class Ransac6Config:
+    """The paper's baseline: RANSAC over random 6-line correspondences solved by DLT-Lines."""
+
+    max_iterations: int = 2000  # paper-faithful budget; it rarely finds a pose among many lines
+    stop_inlier_fraction: float = 0.7  # paper: stop at 70 % of the 2D segments as inliers
+    # pretest: a hypothesis must explain this many of its own 6 sampled pairs before the full (N, M) test
+    min_sample_inliers: int = 4
+    seed: int = 0
+
+
+@dataclass(frozen=True)
 class RegisterConfig:
     """Everything ``register`` needs; ``method="ransac6"`` runs the paper's baseline instead."""
 
@@ -94,6 +105,7 @@ class RegisterConfig:
     match: MatchConfig = field(default_factory=MatchConfig)
     translation: TranslationConfig = field(default_factory=TranslationConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
+    ransac6: Ransac6Config = field(default_factory=Ransac6Config)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RegisterConfig:

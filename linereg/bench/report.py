@@ -1,0 +1,235 @@
+"""Helpers every benchmark shares: per-cell statistics, a text table, atomic JSON/PNG writes, line plots,
+and a tiny dependency-free progress bar.
+
+A benchmark records one dict per trial (see ``trial_record``) and summarises a cell with ``cell_stats``.
+Plots use matplotlib's object API with the Agg canvas only (no pyplot, no global backend switch), so they
+work headless and never disturb a caller's figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import IO, Any
+
+import numpy as np
+
+# the paper's success criterion (after Campbell et al. 2018): R_e < 0.1 rad and |t_e| / |t_GT| < 0.1
+SUCCESS_ROTATION_RAD = 0.1
+SUCCESS_REL_TRANSLATION = 0.1
+
+
+def trial_record(
+    method: str,
+    trial: int,
+    reported: bool,
+    errors: tuple[float, float, float] | None,
+    seconds: float,
+    num_inliers: int = 0,
+    reason: str = "",
+) -> dict[str, Any]:
+    """Returns one trial as a flat dict; ``success`` applies the paper's criterion to ``errors``.
+
+    errors: ``geometry.pose_errors`` (rotation deg, position m, relative translation) or None (no pose).
+    """
+    rot, pos, rel = errors if errors is not None else (math.nan, math.nan, math.nan)
+    success = bool(reported and math.radians(rot) < SUCCESS_ROTATION_RAD and rel < SUCCESS_REL_TRANSLATION)
+    return {
+        "method": method,
+        "trial": trial,
+        "success": success,
+        "reported": bool(reported),
+        "rotation_deg": rot,
+        "position_m": pos,
+        "rel_translation": rel,
+        "time_ms": 1e3 * seconds,
+        "num_inliers": int(num_inliers),
+        "reason": reason,
+    }
+
+
+def cell_stats(trials: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Returns success rate, pose errors over the successful trials, runtime over all trials.
+
+    Keys: n, num_success, success_rate, rotation_deg_median/_rmse, rel_translation_median/_rmse,
+    position_m_median (NaN without successes), time_ms_median, time_ms_p95.
+    """
+    ok = [t for t in trials if t["success"]]
+    rot = np.array([t["rotation_deg"] for t in ok])
+    rel = np.array([t["rel_translation"] for t in ok])
+    pos = np.array([t["position_m"] for t in ok])
+    ms = np.array([t["time_ms"] for t in trials])
+    return {
+        "n": len(trials),
+        "num_success": len(ok),
+        "success_rate": len(ok) / len(trials) if trials else math.nan,
+        "rotation_deg_median": _median(rot),
+        "rotation_deg_rmse": _rmse(rot),
+        "rel_translation_median": _median(rel),
+        "rel_translation_rmse": _rmse(rel),
+        "position_m_median": _median(pos),
+        "time_ms_median": _median(ms),
+        "time_ms_p95": float(np.percentile(ms, 95)) if len(ms) else math.nan,
+    }
+
+
+def _median(a: np.ndarray) -> float:
+    return float(np.median(a)) if len(a) else math.nan
+
+
+def _rmse(a: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(a**2))) if len(a) else math.nan
+
+
+def format_table(rows: Sequence[dict[str, Any]], columns: Sequence[tuple[str, str, str]]) -> str:
+    """Returns an aligned text table; columns are (key, header, format spec such as ``.1f``); NaN -> '-'."""
+    cells = [[header for _, header, _ in columns]]
+    for row in rows:
+        cells.append([_format(row.get(key), spec) for key, _, spec in columns])
+    widths = [max(len(r[i]) for r in cells) for i in range(len(columns))]
+    lines = ["  ".join(c.rjust(w) for c, w in zip(r, widths, strict=True)) for r in cells]
+    lines.insert(1, "  ".join("-" * w for w in widths))
+    return "\n".join(lines)
+
+
+def _format(value: Any, spec: str) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    return format(value, spec) if spec else str(value)
+
+
+def jsonable(obj: Any) -> Any:
+    """Returns ``obj`` with numpy scalars/arrays turned into Python types and NaN/inf into None."""
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    return obj
+
+
+def write_atomic(path: str | Path, data: bytes) -> Path:
+    """Returns ``path`` after writing ``data`` to a temp file beside it and renaming it into place."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def write_json_atomic(path: str | Path, obj: Any) -> Path:
+    """Returns ``path`` after atomically writing ``obj`` as indented JSON (NaN becomes null)."""
+    text = json.dumps(jsonable(obj), indent=1, allow_nan=False)
+    return write_atomic(path, (text + "\n").encode())
+
+
+def plot_series(
+    path: str | Path,
+    series: dict[str, tuple[Sequence[float], Sequence[float]]],
+    xlabel: str,
+    ylabel: str,
+    title: str = "",
+    logy: bool = False,
+    ylim: tuple[float, float] | None = None,
+) -> Path:
+    """Returns ``path`` after atomically saving a PNG with one marked line per series label -> (x, y)."""
+    fig, ax = new_figure()
+    for label, (x, y) in series.items():
+        ax.plot(x, y, marker="o", label=label)
+    style_axes(ax, xlabel, ylabel, title, logy, ylim)
+    return save_figure(fig, path)
+
+
+def new_figure(ncols: int = 1, width_in: float = 5.0, height_in: float = 3.6) -> tuple[Any, Any]:
+    """Returns (figure, axes) drawn by the Agg canvas; several axes when ``ncols > 1``."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(width_in * ncols, height_in), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig, fig.subplots(1, ncols)
+
+
+def style_axes(ax: Any, xlabel: str, ylabel: str, title: str = "", logy: bool = False, ylim=None) -> None:
+    """Labels, grid and legend in the benchmarks' common style."""
+    ax.set_xlabel(xlabel)
+    ax.set_ylabel(ylabel)
+    if title:
+        ax.set_title(title)
+    if logy:
+        ax.set_yscale("log")
+    if ylim is not None:
+        ax.set_ylim(*ylim)
+    ax.grid(True, alpha=0.3)
+    if ax.get_legend_handles_labels()[0]:
+        ax.legend()
+
+
+def save_figure(fig: Any, path: str | Path, dpi: int = 120) -> Path:
+    """Returns ``path`` after rendering ``fig`` to PNG and writing it atomically."""
+    import io
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    return write_atomic(path, buf.getvalue())
+
+
+class Progress:
+    """A one-line progress bar on a TTY; elsewhere only the ``note`` lines (one per cell) are printed."""
+
+    def __init__(self, total: int, stream: IO[str] | None = None, width: int = 30) -> None:
+        self.total, self.done, self.width = max(total, 1), 0, width
+        self.stream = stream if stream is not None else sys.stderr
+        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
+        self._start = time.monotonic()
+        self._label = ""
+
+    def advance(self, label: str = "", n: int = 1) -> None:
+        """Counts ``n`` finished units and redraws the bar (TTY only)."""
+        self.done += n
+        self._label = label or self._label
+        if self.tty:
+            filled = int(self.width * self.done / self.total)
+            bar = "#" * filled + "." * (self.width - filled)
+            eta = (time.monotonic() - self._start) * (self.total - self.done) / max(self.done, 1)
+            self.stream.write(f"\r[{bar}] {self.done}/{self.total} eta {eta:4.0f}s {self._label[:40]:<40}")
+            self.stream.flush()
+
+    def note(self, line: str) -> None:
+        """Prints a line above the bar (TTY) or alone (otherwise)."""
+        if self.tty:
+            self.stream.write("\r" + " " * (self.width + 70) + "\r")
+        self.stream.write(line + "\n")
+        if self.tty:
+            self.advance(n=0)
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def by_key(rows: Iterable[dict[str, Any]], key: str) -> dict[Any, list[dict[str, Any]]]:
+    """Returns rows grouped by ``row[key]``, groups in first-seen order."""
+    groups: dict[Any, list[dict[str, Any]]] = {}
+    for row in rows:
+        groups.setdefault(row[key], []).append(row)
+    return groups

@@ -1,0 +1,300 @@
+"""``linereg bench synthetic``: the paper's Monte-Carlo experiments (section IV-A, Figs. 5 and 6).
+
+Sweeps (2 px endpoint noise throughout):
+- ``lines``: 20, 50, 100, 200 map lines at 30 % 3D and 30 % 2D outliers (Fig. 5: success, runtime, errors);
+- ``outliers3d``: 3D outlier fraction 0 .. 0.6 at 100 lines, 30 % 2D outliers (Fig. 6a);
+- ``outliers2d``: 2D outlier fraction 0, 0.2, 0.4, 0.6 at 100 lines, 30 % 3D outliers (Fig. 6b);
+- ``building``: ``synthetic.building_scene`` with its defaults, when that generator exists.
+
+Methods: ``vp`` (``linereg.register``, ours), ``ransac6`` (``register`` with ``method="ransac6"``, the
+paper's baseline) and ``oracle`` (PnL with the true matches, the accuracy reference). Trial ``i`` of a cell
+draws its scene from ``default_rng([seed, i])``, so every method sees the same scenes. Success follows the
+paper: R_e < 0.1 rad and |t_e| / |t_GT| < 0.1; pose errors are summarised over successful trials only,
+runtimes over all trials (wall clock around the call, scene generation excluded).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .. import synthetic
+from ..config import Ransac6Config, RegisterConfig
+from ..geometry import pose_errors
+from ..registration import Registration
+from . import report
+
+log = logging.getLogger(__name__)
+
+METHODS = ("vp", "ransac6", "oracle")
+NOISE_PX = 2.0  # paper: sigma = 2 px on the 2D endpoints
+DEFAULT_OUTLIERS = 0.3
+DEFAULT_LINES = 100
+FULL = {
+    "lines": (20, 50, 100, 200),
+    "outliers3d": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),
+    "outliers2d": (0.0, 0.2, 0.4, 0.6),
+}
+QUICK = {"lines": (20, 50), "outliers3d": (0.0, 0.6), "outliers2d": (0.0, 0.6)}
+QUICK_LINES = 50  # --quick runs the outlier sweeps on smaller scenes too
+QUICK_TRIALS = 3
+QUICK_RANSAC6_ITERATIONS = 200
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One point of a sweep: which scenes to draw."""
+
+    sweep: str  # "lines", "outliers3d", "outliers2d" or "building"
+    x: float  # the swept value (number of lines or outlier fraction; 0 for building)
+    num_lines: int = DEFAULT_LINES
+    outlier3d: float = DEFAULT_OUTLIERS
+    outlier2d: float = DEFAULT_OUTLIERS
+
+    def scene(self, rng: np.random.Generator) -> synthetic.Scene:
+        """Returns the scene of one trial."""
+        if self.sweep == "building":
+            return synthetic.building_scene(rng)  # type: ignore[attr-defined]
+        return synthetic.paper_scene(rng, self.num_lines, self.outlier3d, self.outlier2d, NOISE_PX)
+
+
+@dataclass(frozen=True)
+class Options:
+    """What to run: ``trials`` per cell, ``methods`` among METHODS, the RegisterConfig for ours/ransac6."""
+
+    quick: bool = False
+    trials: int = 50
+    methods: tuple[str, ...] = METHODS
+    seed: int = 0
+    config: RegisterConfig = dataclasses.field(default_factory=RegisterConfig)
+
+
+def cells(quick: bool) -> list[Cell]:
+    """Returns the cells of every sweep, in table order."""
+    grid, lines = (QUICK, QUICK_LINES) if quick else (FULL, DEFAULT_LINES)
+    out = [Cell("lines", n, n) for n in grid["lines"]]
+    out += [Cell("outliers3d", f, lines, outlier3d=f) for f in grid["outliers3d"]]
+    out += [Cell("outliers2d", f, lines, outlier2d=f) for f in grid["outliers2d"]]
+    if hasattr(synthetic, "building_scene"):
+        out.append(Cell("building", 0.0))
+    return out
+
+
+def run_method(method: str, scene: synthetic.Scene, config: RegisterConfig) -> tuple[Registration, float]:
+    """Returns (Registration, seconds) of one method on one scene; an exception becomes a failure."""
+    start = time.perf_counter()
+    try:
+        result = _RUNNERS[method](scene, config)
+    except Exception as e:  # a crash is a failed trial, recorded with its cause, not a dead benchmark
+        log.debug("%s raised", method, exc_info=True)
+        result = Registration(False, reason=f"{type(e).__name__}: {e}")
+    return result, time.perf_counter() - start
+
+
+# imports inside the runners: while the pipeline is being assembled, its ImportError is a recorded failure
+def _run_register(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
+    from ..pipeline import register
+
+    return register(scene.lines2d, scene.lines3d, scene.camera, config)
+
+
+def _run_ransac6(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
+    return _run_register(scene, dataclasses.replace(config, method="ransac6"))
+
+
+def _run_oracle(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
+    from ..oracle import pnl_known_correspondences
+
+    pose = pnl_known_correspondences(
+        scene.lines2d, scene.lines3d, scene.true_matches, scene.camera, config.match.distance_px
+    )
+    return Registration(True, cam_from_world=pose, num_inliers=len(scene.true_matches))
+
+
+_RUNNERS = {"vp": _run_register, "ransac6": _run_ransac6, "oracle": _run_oracle}
+
+
+def run_cell(cell: Cell, options: Options, progress: report.Progress | None = None) -> list[dict[str, Any]]:
+    """Returns one trial record per (trial, method) of a cell; all methods share each trial's scene."""
+    records = []
+    for trial in range(options.trials):
+        scene = cell.scene(np.random.default_rng([options.seed, trial]))
+        for method in options.methods:
+            result, seconds = run_method(method, scene, options.config)
+            errors = pose_errors(result.cam_from_world, scene.cam_from_world) if result.success else None
+            records.append(
+                report.trial_record(
+                    method, trial, result.success, errors, seconds, result.num_inliers, result.reason
+                )
+            )
+            if progress is not None:
+                progress.advance(f"{cell.sweep}={cell.x:g} {method}")
+    return records
+
+
+def run_synthetic(options: Options, progress: report.Progress | None = None) -> dict[str, Any]:
+    """Returns the results: options, criterion, and per (cell, method) statistics with their trials."""
+    rows = []
+    for cell in cells(options.quick):
+        records = run_cell(cell, options, progress)
+        for method, trials in report.by_key(records, "method").items():
+            row = dataclasses.asdict(cell) | {"method": method} | report.cell_stats(trials)
+            rows.append(row | {"trials": trials})
+        if progress is not None:
+            progress.note(_cell_line(cell, rows[-len(options.methods) :]))
+    return {
+        "benchmark": "synthetic",
+        "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "config"},
+        "noise_px": NOISE_PX,
+        "ransac6": dataclasses.asdict(options.config.ransac6),
+        "success_criterion": {
+            "rotation_rad": report.SUCCESS_ROTATION_RAD,
+            "rel_translation": report.SUCCESS_REL_TRANSLATION,
+        },
+        "errors_over": "successful trials only; runtimes over all trials",
+        "rows": rows,
+    }
+
+
+def _cell_line(cell: Cell, rows: list[dict[str, Any]]) -> str:
+    rates = ", ".join(
+        f"{r['method']} {100 * r['success_rate']:.0f}% {r['time_ms_median']:.0f}ms" for r in rows
+    )
+    return f"{cell.sweep:>10} {cell.x:<5g}: {rates}"
+
+
+TABLE_COLUMNS = (
+    ("sweep", "sweep", ""),
+    ("x", "x", "g"),
+    ("method", "method", ""),
+    ("n", "n", "d"),
+    ("success_rate", "success", ".0%"),
+    ("rotation_deg_median", "rot med°", ".2f"),
+    ("rotation_deg_rmse", "rot rmse°", ".2f"),
+    ("rel_translation_median", "|te|/|t| med", ".4f"),
+    ("position_m_median", "pos med m", ".3f"),
+    ("time_ms_median", "ms med", ".0f"),
+    ("time_ms_p95", "ms p95", ".0f"),
+)
+
+
+def write_results(results: dict[str, Any], out: Path) -> list[Path]:
+    """Returns the files written to ``out``: results.json and the figures of the paper."""
+    written = [report.write_json_atomic(out / "results.json", results)]
+    written += plot_results(results["rows"], out)
+    return written
+
+
+def plot_results(rows: list[dict[str, Any]], out: Path) -> list[Path]:
+    """Returns the PNGs written: success / runtime / pose errors vs #lines, success vs outlier fractions."""
+    sweeps = report.by_key(rows, "sweep")
+    written = []
+    lines = sweeps.get("lines", [])
+    if lines:
+        written.append(
+            _plot(lines, "success_rate", out / "success_vs_lines.png", "number of 3D lines", "success rate")
+        )
+        written.append(
+            _plot(
+                lines,
+                "time_ms_median",
+                out / "runtime_vs_lines.png",
+                "number of 3D lines",
+                "median runtime (ms)",
+                logy=True,
+            )
+        )
+        written.append(_plot_errors(lines, out / "pose_errors_vs_lines.png"))
+    for sweep, label in (("outliers3d", "3D outlier fraction"), ("outliers2d", "2D outlier fraction")):
+        if sweep in sweeps:
+            written.append(
+                _plot(sweeps[sweep], "success_rate", out / f"success_vs_{sweep}.png", label, "success rate")
+            )
+    return written
+
+
+def _series(rows: list[dict[str, Any]], key: str) -> dict[str, tuple[list[float], list[float]]]:
+    return {
+        m: ([r["x"] for r in rs], [r[key] for r in rs]) for m, rs in report.by_key(rows, "method").items()
+    }
+
+
+def _plot(rows, key: str, path: Path, xlabel: str, ylabel: str, logy: bool = False) -> Path:
+    ylim = (-0.02, 1.02) if key == "success_rate" else None
+    return report.plot_series(path, _series(rows, key), xlabel, ylabel, logy=logy, ylim=ylim)
+
+
+def _plot_errors(rows: list[dict[str, Any]], path: Path) -> Path:
+    """Returns ``path`` after plotting rotation RMSE (deg) and median position error (m) per method."""
+    fig, (ax_r, ax_t) = report.new_figure(ncols=2)
+    for method, (x, y) in _series(rows, "rotation_deg_rmse").items():
+        ax_r.plot(x, y, marker="o", label=method)
+    for method, (x, y) in _series(rows, "position_m_median").items():
+        ax_t.plot(x, y, marker="o", label=method)
+    report.style_axes(ax_r, "number of 3D lines", "rotation error RMSE (deg)", "successful trials")
+    report.style_axes(ax_t, "number of 3D lines", "median position error (m)", "successful trials")
+    return report.save_figure(fig, path)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Adds the ``bench synthetic`` arguments and sets ``func=run``."""
+    parser.add_argument("--quick", action="store_true", help="few cells and trials (seconds; for CI)")
+    parser.add_argument(
+        "--trials", type=int, default=None, help=f"trials per cell (default 50, quick {QUICK_TRIALS})"
+    )
+    parser.add_argument("--out", type=Path, default=Path("bench-results/synthetic"), help="output directory")
+    parser.add_argument(
+        "--methods", default=",".join(METHODS), help="comma-separated subset of vp,ransac6,oracle"
+    )
+    parser.add_argument("--seed", type=int, default=0, help="base seed; trial i uses the rng of [seed, i]")
+    parser.add_argument(
+        "--ransac6-iterations",
+        type=int,
+        default=None,
+        help=f"ransac6 iteration cap (default {Ransac6Config.max_iterations}, quick {QUICK_RANSAC6_ITERATIONS})",
+    )
+    parser.set_defaults(func=run)
+
+
+def options_from_args(args: argparse.Namespace) -> Options:
+    """Returns the Options of parsed ``bench synthetic`` arguments (raises InvalidInputError if bad)."""
+    from ..errors import InvalidInputError
+
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    unknown = sorted(set(methods) - set(METHODS))
+    if unknown or not methods:
+        raise InvalidInputError(
+            f"--methods: unknown {', '.join(unknown) or '(none)'}; choose from {', '.join(METHODS)}"
+        )
+    trials = args.trials if args.trials is not None else (QUICK_TRIALS if args.quick else 50)
+    if trials < 1:
+        raise InvalidInputError(f"--trials must be >= 1, got {trials}")
+    iterations = args.ransac6_iterations or (
+        QUICK_RANSAC6_ITERATIONS if args.quick else Ransac6Config.max_iterations
+    )
+    config = RegisterConfig(ransac6=Ransac6Config(max_iterations=iterations))
+    return Options(quick=args.quick, trials=trials, methods=methods, seed=args.seed, config=config)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs the benchmark, prints the table, writes results; returns the exit code."""
+    import sys
+
+    options = options_from_args(args)
+    progress = report.Progress(len(cells(options.quick)) * options.trials * len(options.methods))
+    try:
+        results = run_synthetic(options, progress)
+    finally:
+        progress.close()
+    print(report.format_table(results["rows"], TABLE_COLUMNS))
+    print("errors over successful trials only; runtimes over all trials")
+    for path in write_results(results, args.out):
+        print(f"wrote {path}", file=sys.stderr)
+    return 0
