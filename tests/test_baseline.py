@@ -1,0 +1,130 @@
+import dataclasses
+
+import numpy as np
+import pytest
+
+import linereg
+from linereg.baseline import dlt_lines, register_ransac6
+from linereg.config import Ransac6Config, RegisterConfig
+from linereg.errors import InvalidInputError
+from linereg.geometry import pose_errors
+from linereg.matching import project_segments
+from linereg.oracle import pnl_known_correspondences
+from linereg.synthetic import look_at, paper_scene
+
+
+def general_scene(rng, camera, num_lines, noise_px=0.0):
+    """Returns (lines2d, lines3d, cam_from_world): random directions (general position), all imaged."""
+    cam_from_world = look_at(np.array([0.5, -4.0, 1.0]), np.zeros(3), roll_rad=0.3)
+    lines3d = np.zeros((0, 6))
+    while len(lines3d) < num_lines:
+        cand = rng.uniform(-1.0, 1.0, size=(1, 6))
+        seg, _ = project_segments(cand, camera, cam_from_world, 1e-3)
+        inside = (seg[:, 0::2].min() > 0) & (seg[:, 0::2].max() < camera.width)
+        inside &= (seg[:, 1::2].min() > 0) & (seg[:, 1::2].max() < camera.height)
+        if inside and np.linalg.norm(seg[0, 2:] - seg[0, :2]) > 40.0:
+            lines3d = np.r_[lines3d, cand]
+    lines2d, _ = project_segments(lines3d, camera, cam_from_world, 1e-3)
+    return lines2d + rng.normal(scale=noise_px, size=lines2d.shape), lines3d, cam_from_world
+
+
+@pytest.mark.parametrize("num_lines", [6, 7, 20])
+def test_dlt_lines_exact_on_noise_free_correspondences(camera, rng, num_lines):
+    lines2d, lines3d, truth = general_scene(rng, camera, num_lines)
+    estimate = dlt_lines(lines2d, lines3d, camera)
+    assert np.allclose(estimate, truth, atol=1e-9)
+
+
+def test_dlt_lines_is_invariant_to_world_offset_and_endpoint_order(camera, rng):
+    # Hartley normalisation: a map far from the origin is as well conditioned as one around it
+    lines2d, lines3d, truth = general_scene(rng, camera, 8)
+    offset = np.array([1e4, -2e4, 300.0])
+    shifted = truth.copy()
+    shifted[:3, 3] -= truth[:3, :3] @ offset
+    swapped = np.c_[lines2d[:, 2:4], lines2d[:, 0:2]]
+    estimate = dlt_lines(swapped, lines3d + np.tile(offset, 2), camera)
+    assert np.allclose(estimate[:3, :3], shifted[:3, :3], atol=1e-8)
+    assert np.allclose(estimate[:3, 3], shifted[:3, 3], atol=1e-4 * np.linalg.norm(shifted[:3, 3]))
+
+
+def test_dlt_lines_degrades_gracefully_with_noise(camera, rng):
+    lines2d, lines3d, truth = general_scene(rng, camera, 60, noise_px=1.0)
+    rot_deg, _, rel = pose_errors(dlt_lines(lines2d, lines3d, camera), truth)
+    assert rot_deg < 2.0 and rel < 0.05
+
+
+def test_dlt_lines_rejects_bad_input(camera, rng):
+    lines2d, lines3d, _ = general_scene(rng, camera, 6)
+    with pytest.raises(InvalidInputError, match="lines2d"):
+        dlt_lines(lines2d[:5], lines3d[:5], camera)
+    with pytest.raises(InvalidInputError, match="row by row"):
+        dlt_lines(lines2d, np.r_[lines3d, lines3d[:1]], camera)
+    with pytest.raises(InvalidInputError, match="lines3d"):
+        dlt_lines(lines2d, lines3d[:, :4], camera)
+
+
+def test_ransac6_succeeds_on_easy_scene(camera, rng):
+    # A blind 6-pair sample is all-correct with probability 1/6! here (about (1/20)^6 with 20 lines, which
+    # is why the paper's baseline fails on realistic scenes): the easy scene is 6 noise-free lines.
+    lines2d, lines3d, truth = general_scene(rng, camera, 6)
+    order = rng.permutation(6)
+    config = RegisterConfig(ransac6=Ransac6Config(max_iterations=5000, seed=3))
+    result = register_ransac6(lines2d[order], lines3d, camera, config)
+    assert result.success, result.reason
+    rot_deg, _, rel = pose_errors(result.cam_from_world, truth)
+    assert rot_deg < 0.01 and rel < 1e-3
+    assert result.num_inliers == 6
+    assert np.array_equal(np.sort(result.matches, axis=0)[:, 1], np.sort(order))
+    assert {"ransac6", "total"} <= set(result.timings)
+
+
+def test_ransac6_fails_with_a_reason_within_its_budget(rng):
+    scene = paper_scene(rng, 20, 0.3, 0.3, 2.0)
+    config = RegisterConfig(ransac6=Ransac6Config(max_iterations=50))
+    result = register_ransac6(scene.lines2d, scene.lines3d, scene.camera, config)
+    assert not result.success and "ransac6" in result.reason
+    assert np.array_equal(result.cam_from_world, np.eye(4))
+
+
+def test_ransac6_too_few_lines_is_a_failure_not_an_error(camera, rng):
+    lines2d, lines3d, _ = general_scene(rng, camera, 6)
+    result = register_ransac6(lines2d[:4], lines3d, camera)
+    assert not result.success and "needs" in result.reason
+    with pytest.raises(InvalidInputError):
+        register_ransac6(lines2d[:, :3], lines3d, camera)
+
+
+def test_ransac6_config_section_round_trips():
+    config = RegisterConfig.from_dict({"method": "ransac6", "ransac6": {"max_iterations": 10}})
+    assert config.ransac6.max_iterations == 10 and config.ransac6.stop_inlier_fraction == 0.7
+    assert dataclasses.replace(config, method="vp").ransac6 == config.ransac6
+
+
+@pytest.mark.parametrize("noise_px", [0.0, 2.0])
+def test_oracle_matches_ground_truth(noise_px):
+    scene = paper_scene(np.random.default_rng(7), 50, 0.3, 0.3, noise_px)
+    estimate = pnl_known_correspondences(scene.lines2d, scene.lines3d, scene.true_matches, scene.camera)
+    rot_deg, _, rel = pose_errors(estimate, scene.cam_from_world)
+    if noise_px == 0.0:  # PoseLib's CameraPose is world -> camera: exactly our cam_from_world
+        assert np.allclose(estimate, scene.cam_from_world, atol=1e-9)
+    else:
+        assert rot_deg < 1.0 and rel < 0.02
+
+
+def test_oracle_rejects_bad_matches(camera):
+    scene = paper_scene(np.random.default_rng(8), 20, 0.0, 0.0, 0.0)
+    with pytest.raises(InvalidInputError, match="at least 3"):
+        pnl_known_correspondences(scene.lines2d, scene.lines3d, scene.true_matches[:2], scene.camera)
+    bad = scene.true_matches.copy()
+    bad[0, 1] = len(scene.lines3d)
+    with pytest.raises(InvalidInputError, match="outside"):
+        pnl_known_correspondences(scene.lines2d, scene.lines3d, bad, scene.camera)
+
+
+def test_register_dispatches_to_ransac6(camera, rng):
+    register = pytest.importorskip("linereg.pipeline").register  # the composer may be under construction
+    lines2d, lines3d, _ = general_scene(rng, camera, 6)
+    config = RegisterConfig(method="ransac6", ransac6=Ransac6Config(max_iterations=3))
+    result = register(lines2d, lines3d, camera, config)
+    assert "ransac6" in result.timings
+    assert isinstance(result, linereg.Registration)
