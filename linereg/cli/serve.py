@@ -1,0 +1,59 @@
+"""``linereg serve --map MAP``: run the zenoh localization service (the service layer is imported in ``run``)."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Adds the service's flags to ``parser`` (shared with ``python -m service``)."""
+    parser.add_argument("--map", required=True, help="LineMap file to serve")
+    parser.add_argument("--name", help="map name on the network (default: the map's own name)")
+    parser.add_argument("--instance", help="instance id in keys and liveliness (default: random)")
+    parser.add_argument("--workers", type=int, default=2, help="worker processes, each with the map loaded")
+    parser.add_argument(
+        "--queue", type=int, default=8, help="requests waiting beyond the workers before 'busy'"
+    )
+    parser.add_argument("--mode", default="router", choices=("router", "peer", "client"), help="zenoh mode")
+    parser.add_argument(
+        "--listen", action="append", help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)"
+    )
+    parser.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
+    parser.add_argument("--zenoh-config", help="zenoh json5 config file (mode/endpoints flags override it)")
+    parser.add_argument("--deadline-ms", type=int, default=10_000, help="deadline of requests that set none")
+    parser.add_argument("--max-payload-mb", type=float, default=16.0, help="largest accepted request")
+    parser.add_argument("--plain-logs", action="store_true", help="text logs instead of JSON lines")
+
+
+def add_parser(subparsers) -> None:
+    parser = subparsers.add_parser("serve", help="serve a map over zenoh", description=__doc__)
+    add_arguments(parser)
+    parser.set_defaults(func=run)
+
+
+def config_from_args(args: argparse.Namespace):
+    """Returns the ServiceConfig the flags describe."""
+    from protocols import Limits
+    from service import ServiceConfig
+    from service.zconfig import DEFAULT_ENDPOINT
+
+    limits = Limits(
+        max_payload_bytes=int(args.max_payload_mb * 1024 * 1024), default_deadline_ms=args.deadline_ms
+    )
+    listen = tuple(args.listen) if args.listen else (() if args.mode == "client" else (DEFAULT_ENDPOINT,))
+    return ServiceConfig(
+        loader="service.engine:load_map_engine", loader_args=(args.map, args.name), map_name=args.name,
+        instance=args.instance, workers=args.workers, queue_size=args.queue, mode=args.mode, listen=listen,
+        connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
+    )  # fmt: skip
+
+
+def run(args: argparse.Namespace) -> int:
+    import logging
+
+    from service import logs, server
+
+    logs.configure(
+        logging.getLogger().getEffectiveLevel() if args.verbose else logging.INFO, not args.plain_logs
+    )
+    return server.run(config_from_args(args))

@@ -1,0 +1,185 @@
+"""Python client: ``Client(connect=...).localize(image, camera) -> linereg.Registration`` over zenoh.
+
+with Client(connect="tcp/127.0.0.1:7447") as client:
+    reg = client.localize(image, camera, timeout=5.0)   # image: (H, W[, C]) uint8 array, path or PNG/JPEG bytes
+"""
+
+from __future__ import annotations
+
+import itertools
+import os
+import uuid
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import zenoh
+
+import protocols
+from linereg.camera import Camera
+from linereg.errors import LineregError
+from linereg.registration import Registration
+from protocols import LocalizeRequest, keys
+from protocols.images import JPEG_MAGIC, PNG_MAGIC
+
+from .zconfig import DEFAULT_ENDPOINT, session_config
+
+
+class ServiceError(LineregError):
+    """The service answered with an Error (``code`` from protocols.ERROR_CODES) or did not answer."""
+
+    def __init__(self, code: str, message: str):
+        super().__init__(f"{code}: {message}")
+        self.code, self.message = code, message
+
+
+class Client:
+    """A zenoh session to a linereg service; ``map_name`` None = the only map being served."""
+
+    def __init__(
+        self,
+        connect: str | Sequence[str] = DEFAULT_ENDPOINT,
+        map_name: str | None = None,
+        config_file: str | None = None,
+        mode: str = "client",
+        balance: bool = False,
+    ) -> None:
+        endpoints = [connect] if isinstance(connect, str) else list(connect)
+        self.session = zenoh.open(session_config(mode, connect=endpoints, config_file=config_file))
+        self._map_name = map_name
+        self.balance = balance  # spread requests over the instances' own keys (replicas)
+        self._ids = itertools.count()
+        self._prefix = f"{os.getpid()}-{uuid.uuid4().hex[:6]}"
+        self._instances: itertools.cycle | None = None
+
+    def __enter__(self) -> Client:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def close(self) -> None:
+        self.session.close()
+
+    @property
+    def map_name(self) -> str:
+        """Returns the map queried: the one given, or the only one alive."""
+        if self._map_name is None:
+            maps = sorted({m for m, _ in self.instances()})
+            if len(maps) != 1:
+                raise ServiceError("not_found", f"expected one map being served, found {maps or 'none'}")
+            self._map_name = maps[0]
+        return self._map_name
+
+    def instances(self, map_name: str = "*", timeout: float = 2.0) -> list[tuple[str, str]]:
+        """Returns the (map, instance) pairs whose liveliness tokens are alive."""
+        found = []
+        for reply in self.session.liveliness().get(keys.alive_selector(map_name), timeout=timeout):
+            if reply.ok is not None:
+                found.append(keys.instance_of_alive_key(str(reply.ok.key_expr)))
+        return sorted(found)
+
+    def localize(
+        self, image, camera: Camera, prior=None, timeout: float = 10.0, return_matches: bool = True
+    ) -> Registration:
+        """Returns the Registration of ``image`` ((H, W[, C]) uint8 array, PNG/JPEG bytes or a file path)."""
+        data, fmt = encode_image(image)
+        req = LocalizeRequest(self._next_id(), camera, data, fmt, None, wire_prior(prior),
+                              int(timeout * 1000), return_matches)  # fmt: skip
+        return self._localize(req, timeout)
+
+    def localize_segments(self, lines2d, camera: Camera, prior=None, timeout: float = 10.0) -> Registration:
+        """Returns the Registration of (N, 4) float64 pixel segments detected by the caller."""
+        lines2d = np.asarray(lines2d, dtype=np.float64)
+        req = LocalizeRequest(
+            self._next_id(), camera, None, "", lines2d, wire_prior(prior), int(timeout * 1000), True
+        )
+        return self._localize(req, timeout)
+
+    def info(self, timeout: float = 5.0) -> dict:
+        """Returns the served map's metadata (name, version, bounds, ...)."""
+        return self._document(keys.info_key(self.map_name), timeout)["map"]
+
+    def stats(self, timeout: float = 5.0) -> dict:
+        """Returns the service's counters, latency percentiles and queue depth."""
+        return self._document(keys.stats_key(self.map_name), timeout)
+
+    def request(self, key: str, payload: bytes, timeout: float) -> tuple[bool, bytes]:
+        """Returns (ok, reply bytes) of one raw query; ServiceError("timeout") when nothing came back."""
+        for reply in self.session.get(key, payload=payload, timeout=timeout):
+            if reply.ok is not None:
+                return True, reply.ok.payload.to_bytes()
+            return False, reply.err.payload.to_bytes()
+        raise ServiceError("timeout", f"no reply on {key} within {timeout} s")
+
+    # --- internals -------------------------------------------------------------------------------------
+
+    def _next_id(self) -> str:
+        return f"{self._prefix}-{next(self._ids)}"
+
+    def _localize_key(self) -> str:
+        if not self.balance:
+            return keys.localize_key(self.map_name)
+        if self._instances is None:
+            self._instances = itertools.cycle([i for _, i in self.instances(self.map_name)] or [None])
+        instance = next(self._instances)
+        if instance is None:
+            return keys.localize_key(self.map_name)
+        return keys.instance_localize_key(self.map_name, instance)
+
+    def _localize(self, req: LocalizeRequest, timeout: float) -> Registration:
+        ok, payload = self.request(self._localize_key(), protocols.encode_request(req), timeout)
+        if not ok:
+            raise _error_of(payload)
+        return protocols.decode_reply(payload).to_registration()
+
+    def _document(self, key: str, timeout: float) -> dict:
+        ok, payload = self.request(key, b"", timeout)
+        if not ok:
+            raise _error_of(payload)
+        return protocols.unpack(payload)
+
+
+def _error_of(payload: bytes) -> ServiceError:
+    """Returns the ServiceError of an error reply (zenoh's own ``Timeout`` included)."""
+    if payload == b"Timeout":  # zenoh's reply when the query's timeout expires first
+        return ServiceError("timeout", "no reply before the timeout")
+    try:
+        err = protocols.decode_error(payload)
+    except protocols.ProtocolError:
+        return ServiceError("internal", f"unreadable error reply: {payload[:80]!r}")
+    return ServiceError(err.code, err.message)
+
+
+def encode_image(image) -> tuple[bytes | np.ndarray, str]:
+    """Returns (wire image, format): PNG/JPEG bytes as they are, a path's file bytes, an array as PNG."""
+    if isinstance(image, str | Path):
+        image = Path(image).read_bytes()
+    if isinstance(image, bytes | bytearray):
+        data = bytes(image)
+        if data.startswith(PNG_MAGIC):
+            return data, "png"
+        if data.startswith(JPEG_MAGIC):
+            return data, "jpeg"
+        raise LineregError("image bytes are neither PNG nor JPEG")
+    import cv2
+
+    ok, buffer = cv2.imencode(".png", np.asarray(image), [cv2.IMWRITE_PNG_COMPRESSION, 1])
+    if not ok:
+        raise LineregError("image cannot be encoded as PNG")
+    return buffer.tobytes(), "png"
+
+
+def wire_prior(prior) -> protocols.Prior | None:
+    """Returns the wire Prior of a library or wire prior (same field names), or None."""
+    if prior is None:
+        return None
+    if getattr(prior, "position", None) is not None:
+        return protocols.Prior(
+            position=np.asarray(prior.position, dtype=np.float64), radius_m=float(prior.radius_m)
+        )
+    return protocols.Prior(
+        cam_from_world=np.asarray(prior.cam_from_world, dtype=np.float64),
+        sigma_rot_deg=float(prior.sigma_rot_deg),
+        sigma_pos_m=float(prior.sigma_pos_m),
+    )

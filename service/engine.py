@@ -1,0 +1,54 @@
+"""What a worker localizes with: the map, loaded once, and the two library entry points."""
+
+from __future__ import annotations
+
+import importlib
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+
+@dataclass
+class Engine:
+    """A loaded map and the functions that localize against it (the real library or a stand-in).
+
+    localize(image (H, W) uint8, line_map, camera, config=None, prior=None) -> Registration
+    localize_segments(lines2d (N, 4) float64, line_map, camera, config=None, prior=None) -> Registration
+    """
+
+    line_map: object
+    localize: Callable
+    localize_segments: Callable
+    map_name: str
+    map_version: str = ""
+    info: dict = field(default_factory=dict)
+    config: object = None
+
+
+def load_engine(spec: str, args: tuple) -> Engine:
+    """Returns the Engine built by ``spec`` = "module:function" called with ``args`` (runs in each worker)."""
+    module_name, _, func_name = spec.partition(":")
+    return getattr(importlib.import_module(module_name), func_name)(*args)
+
+
+def load_map_engine(map_path: str, map_name: str | None = None) -> Engine:
+    """Returns the Engine of the real library over the LineMap file ``map_path``."""
+    import linereg
+
+    line_map = linereg.LineMap.load(map_path)
+    info = dict(line_map.info())
+    name = map_name or str(getattr(line_map, "name", "") or info.get("name") or "map")
+    version = str(info.get("version", info.get("format_version", "")))
+    return Engine(line_map, linereg.localize, linereg.localize_segments, name, version, info)
+
+
+def load_segments_engine(lines3d_path: str, map_name: str) -> Engine:
+    """Returns the Engine over a LineMap built from an (M, 6) ``.npy`` of 3D segments (tests, benchmarks)."""
+    import numpy as np
+
+    import linereg
+
+    line_map = linereg.LineMap.from_segments(np.load(lines3d_path), name=map_name)
+    info = dict(line_map.info())
+    return Engine(
+        line_map, linereg.localize, linereg.localize_segments, map_name, str(info.get("version", "")), info
+    )

@@ -1,0 +1,68 @@
+"""A deterministic stand-in engine for tests and benchmarks of the service without the geometry.
+
+The "pose" it returns encodes its input (so a test can check every reply is the right one), and a first
+segment with ``x1 < 0`` asks for a behaviour: -1 crash the worker, -2 sleep ``y1`` seconds, -3 raise.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+
+import numpy as np
+
+from linereg.registration import Registration
+
+from .engine import Engine
+
+
+def expected_pose(data: np.ndarray) -> np.ndarray:
+    """Returns the (4, 4) pose the fake engine answers for image or segments ``data``."""
+    pose = np.eye(4)
+    pose[:3, 3] = [
+        float(np.asarray(data, dtype=np.float64).sum()),
+        float(data.shape[0]),
+        float(data.shape[1]),
+    ]
+    return pose
+
+
+def _registration(data: np.ndarray) -> Registration:
+    k = min(len(data), 4)
+    return Registration(
+        success=True,
+        cam_from_world=expected_pose(data),
+        matches=np.stack([np.arange(k), np.arange(k)], axis=1).astype(np.int64),
+        num_inliers=k + 10,
+        covariance=np.eye(6) * 1e-4,
+        runner_up_inliers=3,
+        rms_px=0.5,
+        timings={"fake": 1e-4},
+    )
+
+
+def fake_localize(image, line_map, camera, config=None, prior=None) -> Registration:
+    """Returns a Registration whose translation encodes ``image``'s sum and shape."""
+    return _registration(np.asarray(image))
+
+
+def fake_localize_segments(lines2d, line_map, camera, config=None, prior=None) -> Registration:
+    """Returns a Registration encoding ``lines2d``; obeys the behaviour codes of the module docstring."""
+    lines2d = np.asarray(lines2d)
+    code = lines2d[0, 0]
+    if code == -1:
+        os._exit(3)  # a worker crash: no cleanup, no reply
+    if code == -2:
+        time.sleep(float(lines2d[0, 1]))
+    if code == -3:
+        raise RuntimeError("fake engine failure")
+    if code == -4:
+        return Registration(success=False, reason="too few segments")
+    return _registration(lines2d)
+
+
+def load_fake_engine(map_name: str = "fake", startup_s: float = 0.0) -> Engine:
+    """Returns the fake Engine (``startup_s`` imitates the time a real map takes to load)."""
+    time.sleep(startup_s)
+    info = {"name": map_name, "version": "fake-1", "bounds": [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]}
+    return Engine(None, fake_localize, fake_localize_segments, map_name, "fake-1", info)

@@ -1,0 +1,99 @@
+"""The service's handlers: pure ``bytes -> bytes`` functions, their dependencies passed in, no network."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+import protocols
+from linereg.errors import InvalidInputError
+from protocols import Error, Limits, LocalizeReply, LocalizeRequest, ProtocolError
+
+from .engine import Engine
+
+log = logging.getLogger(__name__)
+
+
+def error_bytes(code: str, message: str, request_id: str = "") -> bytes:
+    """Returns the wire bytes of an Error."""
+    return protocols.encode_error(Error(code=code, message=message, id=request_id))
+
+
+def handle_localize(payload: bytes, engine: Engine, limits: Limits) -> bytes:
+    """Returns the LocalizeReply bytes for a LocalizeRequest payload, or Error bytes (never raises)."""
+    try:
+        req = protocols.decode_request(payload, limits)
+    except ProtocolError as e:
+        return error_bytes(e.code, e.message, protocols.request_id(payload))
+    try:
+        reg = _localize(req, engine)
+    except ProtocolError as e:
+        return error_bytes(e.code, e.message, req.id)
+    except InvalidInputError as e:
+        return error_bytes("bad_request", str(e), req.id)
+    except Exception as e:  # a bug or a library failure must not kill the worker
+        log.exception("localize failed for request %s", req.id)
+        return error_bytes("internal", f"{type(e).__name__}: {e}", req.id)
+    reply = LocalizeReply.from_registration(
+        req.id, reg, engine.map_name, engine.map_version, req.return_matches
+    )
+    return protocols.encode_reply(reply)
+
+
+def _localize(req: LocalizeRequest, engine: Engine):
+    """Returns the Registration of a decoded request."""
+    prior = to_library_prior(req.prior)
+    if req.segments is not None:
+        return engine.localize_segments(req.segments, engine.line_map, req.camera, engine.config, prior)
+    image = decode_pixels(req)
+    return engine.localize(image, engine.line_map, req.camera, engine.config, prior)
+
+
+def decode_pixels(req: LocalizeRequest) -> np.ndarray:
+    """Returns the request's image as (H, W) uint8 grey (what the line detector reads)."""
+    import cv2
+
+    if req.image_format == "raw":
+        pixels = np.asarray(req.image)
+        if pixels.dtype == np.uint16:
+            pixels = (pixels // 257).astype(np.uint8)  # 16-bit full range onto 8-bit
+        if pixels.ndim == 3:
+            code = {1: None, 3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}[pixels.shape[2]]
+            pixels = pixels[:, :, 0] if code is None else cv2.cvtColor(pixels, code)
+        return np.ascontiguousarray(pixels)
+    buffer = np.frombuffer(req.image, dtype=np.uint8)  # type: ignore[arg-type]
+    image = cv2.imdecode(buffer, cv2.IMREAD_GRAYSCALE) if len(buffer) else None
+    if image is None:
+        raise ProtocolError("bad_request", f"image does not decode as {req.image_format}")
+    if image.shape != (req.camera.height, req.camera.width):
+        raise ProtocolError(
+            "bad_request", f"decoded image is {image.shape[1]}x{image.shape[0]}, not the camera's size"
+        )
+    return image
+
+
+def to_library_prior(prior: protocols.Prior | None):
+    """Returns the library's Prior for a wire prior (the wire one itself while the library has none)."""
+    if prior is None:
+        return None
+    import linereg
+
+    library_prior = getattr(linereg, "Prior", None)
+    if library_prior is None:
+        return prior
+    if prior.position is not None:
+        return library_prior(position=prior.position, radius_m=prior.radius_m)
+    return library_prior(
+        cam_from_world=prior.cam_from_world, sigma_rot_deg=prior.sigma_rot_deg, sigma_pos_m=prior.sigma_pos_m
+    )
+
+
+def handle_info(payload: bytes, info: dict) -> bytes:
+    """Returns the ``info`` document (map metadata, bounds, protocol version); the payload is ignored."""
+    return protocols.pack("info", {"map": info, "protocol_version": protocols.PROTOCOL_VERSION})
+
+
+def handle_stats(payload: bytes, snapshot: dict) -> bytes:
+    """Returns the ``stats`` document (counters, latency percentiles, queue depth); payload ignored."""
+    return protocols.pack("stats", snapshot)

@@ -1,0 +1,230 @@
+"""A pool of worker processes behind a bounded queue, with deadlines, crash recovery and draining.
+
+Each worker slot has one thread in this process that owns one child process and its pipe: it takes a
+job from the shared queue, sends it, waits for the reply, the child's death or the hard deadline, and
+replaces a dead or hung child. A watcher thread answers ``timeout`` when a job's deadline passes first.
+"""
+
+from __future__ import annotations
+
+import heapq
+import itertools
+import logging
+import multiprocessing as mp
+import queue
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from multiprocessing.connection import wait
+
+import protocols
+from protocols import Limits
+
+from .handlers import error_bytes
+from .worker import worker_main
+
+log = logging.getLogger(__name__)
+_CTX = mp.get_context("spawn")  # never fork: the zenoh session runs native threads
+
+
+@dataclass
+class Job:
+    """One request in flight; ``done(ok, reply_bytes, code)`` is called exactly once."""
+
+    payload: bytes
+    deadline: float  # time.monotonic() seconds
+    done: Callable[[bool, bytes, str], None]
+    request_id: str = ""
+    _lock: threading.Lock = field(default_factory=threading.Lock, repr=False)
+    finished: bool = False
+
+    def finish(self, ok: bool, reply: bytes, code: str = "") -> bool:
+        """Delivers the outcome unless one was delivered already; returns whether this one was."""
+        with self._lock:
+            if self.finished:
+                return False
+            self.finished = True
+        try:
+            self.done(ok, reply, code)
+        except Exception:
+            log.exception("reply callback failed for request %s", self.request_id)
+        return True
+
+    def fail(self, code: str, message: str) -> bool:
+        return self.finish(False, error_bytes(code, message, self.request_id), code)
+
+
+class WorkerPool:
+    """``workers`` processes, each with the engine ``loader(*loader_args)`` loaded once."""
+
+    def __init__(self, loader: str, loader_args: tuple, workers: int = 2, queue_size: int = 8,
+                 limits: Limits | None = None, hard_grace_s: float = 30.0) -> None:  # fmt: skip
+        self.loader, self.loader_args = loader, tuple(loader_args)
+        self.num_workers, self.limits, self.hard_grace_s = workers, limits or Limits(), hard_grace_s
+        self.jobs: queue.Queue = queue.Queue(maxsize=queue_size)
+        self.ready_info: dict = {}
+        self.restarts = 0
+        self.in_flight = 0
+        self._procs: list = [None] * workers
+        self._threads: list[threading.Thread] = []
+        self._deadlines: list = []
+        self._cv = threading.Condition()
+        self._seq = itertools.count()
+        self._closing = False
+
+    def start(self, timeout_s: float = 300.0) -> dict:
+        """Starts every worker, waits until each has loaded the map; returns the first one's ready doc."""
+        started = [self._spawn(i) for i in range(self.num_workers)]
+        for i, (proc, conn) in enumerate(started):
+            self._procs[i] = (proc, conn, self._await_ready(proc, conn, timeout_s))
+        for i in range(self.num_workers):
+            thread = threading.Thread(
+                target=self._slot_loop, args=(i,), name=f"linereg-slot-{i}", daemon=True
+            )
+            thread.start()
+            self._threads.append(thread)
+        threading.Thread(target=self._watch_deadlines, name="linereg-deadlines", daemon=True).start()
+        return self.ready_info
+
+    def submit(self, job: Job) -> bool:
+        """Queues ``job``; returns False (the caller answers ``busy``) when the queue is full or closing."""
+        if self._closing:
+            return False
+        try:
+            self.jobs.put_nowait(job)
+        except queue.Full:
+            return False
+        with self._cv:
+            heapq.heappush(self._deadlines, (job.deadline, next(self._seq), job))
+            self._cv.notify()
+        return True
+
+    def alive(self) -> int:
+        """Returns how many worker processes are alive."""
+        return sum(1 for p in self._procs if p is not None and p[0].is_alive())
+
+    def pids(self) -> list[int]:
+        """Returns the worker process ids (tests kill them)."""
+        return [p[0].pid for p in self._procs if p is not None]
+
+    def close(self, drain_timeout_s: float = 30.0) -> None:
+        """Stops taking jobs, lets queued and in-flight ones finish (up to the timeout), stops the workers."""
+        self._closing = True
+        end = time.monotonic() + drain_timeout_s
+        while (self.jobs.qsize() or self.in_flight) and time.monotonic() < end:
+            time.sleep(0.01)
+        while True:  # whatever is left after the drain timeout is answered, never dropped
+            try:
+                self.jobs.get_nowait().fail("busy", "service shutting down")
+            except queue.Empty:
+                break
+        for _ in self._threads:
+            self.jobs.put(None)
+        for thread in self._threads:
+            thread.join(timeout=max(0.1, end - time.monotonic()) + 5)
+        for slot in self._procs:
+            if slot is not None:
+                self._stop_process(*slot[:2])
+        with self._cv:
+            self._cv.notify()
+
+    # --- internals -------------------------------------------------------------------------------------
+
+    def _spawn(self, index: int):
+        parent, child = _CTX.Pipe()
+        proc = _CTX.Process(
+            target=worker_main, args=(child, self.loader, self.loader_args, self.limits),
+            name=f"linereg-worker-{index}", daemon=True,
+        )  # fmt: skip
+        proc.start()
+        child.close()  # so that the parent sees EOF when the child dies
+        return proc, parent
+
+    def _await_ready(self, proc, conn, timeout_s: float) -> dict:
+        if not conn.poll(timeout_s):
+            proc.kill()
+            raise RuntimeError(f"worker did not load the map within {timeout_s:.0f} s")
+        try:
+            doc = protocols.unpack(conn.recv_bytes())
+        except (EOFError, OSError, protocols.ProtocolError):
+            raise RuntimeError(f"worker died while loading the map (exit code {proc.exitcode})") from None
+        if doc["type"] != "ready":
+            raise RuntimeError(f"worker failed to load the map: {doc.get('error')}\n{doc.get('trace', '')}")
+        self.ready_info = self.ready_info or doc
+        log.info("worker ready", extra={"fields": {"pid": proc.pid, "map": doc.get("map_name")}})
+        return doc
+
+    def _replace(self, index: int, reason: str) -> None:
+        proc, conn, _ = self._procs[index]
+        self._stop_process(proc, conn, kill=True)
+        self.restarts += 1
+        log.warning(
+            "worker replaced", extra={"fields": {"pid": proc.pid, "reason": reason, "exit": proc.exitcode}}
+        )
+        if self._closing:
+            self._procs[index] = None
+            return
+        proc, conn = self._spawn(index)
+        self._procs[index] = (proc, conn, self._await_ready(proc, conn, 300.0))
+
+    @staticmethod
+    def _stop_process(proc, conn, kill: bool = False) -> None:
+        if not kill:
+            try:
+                conn.send_bytes(b"")
+            except OSError:
+                pass
+            proc.join(timeout=5)
+        if proc.is_alive():
+            proc.kill()
+        proc.join(timeout=5)
+        conn.close()
+
+    def _slot_loop(self, index: int) -> None:
+        while True:
+            job = self.jobs.get()
+            if job is None:
+                return
+            if job.finished:  # answered ``timeout`` while it waited in the queue
+                continue
+            self.in_flight += 1
+            try:
+                self._run(index, job)
+            finally:
+                self.in_flight -= 1
+
+    def _run(self, index: int, job: Job) -> None:
+        """Runs one job on the slot's worker; answers ``internal`` and replaces the worker if it dies."""
+        proc, conn, _ = self._procs[index]
+        try:
+            conn.send_bytes(job.payload)
+            hard_deadline = job.deadline + self.hard_grace_s
+            while not wait([conn, proc.sentinel], timeout=0.5):
+                if time.monotonic() > hard_deadline:
+                    job.fail("timeout", "deadline passed")
+                    self._replace(index, "hung past its deadline")
+                    return
+            reply = conn.recv_bytes()
+        except (EOFError, OSError):
+            job.fail("internal", "the worker processing this request crashed")
+            self._replace(index, "crashed")
+            return
+        ok = reply[:1] == b"R"
+        job.finish(ok, reply[1:], "" if ok else protocols.decode_error(reply[1:]).code)
+
+    def _watch_deadlines(self) -> None:
+        while True:
+            with self._cv:
+                if self._closing and not self._threads_alive():
+                    return
+                now = time.monotonic()
+                while self._deadlines and (self._deadlines[0][2].finished or self._deadlines[0][0] <= now):
+                    _, _, job = heapq.heappop(self._deadlines)
+                    if not job.finished:
+                        job.fail("timeout", "deadline passed before the request was answered")
+                timeout = self._deadlines[0][0] - now if self._deadlines else 0.5
+                self._cv.wait(timeout=min(max(timeout, 0.001), 0.5))
+
+    def _threads_alive(self) -> bool:
+        return any(t.is_alive() for t in self._threads)

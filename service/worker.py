@@ -1,0 +1,45 @@
+"""A worker process: loads the map once, then answers localize payloads from its pipe until told to stop.
+
+Pipe protocol (parent <-> worker, both bytes): the worker first sends a ``ready`` document (map name,
+version, info) or a ``failed`` one; then for each request payload it sends ``b"R" + reply`` or
+``b"E" + error``; an empty message from the parent means stop.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import traceback
+
+import protocols
+from protocols import Limits
+
+from .engine import load_engine
+from .handlers import handle_localize
+
+log = logging.getLogger(__name__)
+
+
+def worker_main(conn, loader: str, loader_args: tuple, limits: Limits) -> None:
+    """Runs in the child process: load, announce, serve the pipe until EOF or an empty message."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when workers stop
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    try:
+        engine = load_engine(loader, loader_args)
+    except Exception as e:
+        conn.send_bytes(
+            protocols.pack("failed", {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()})
+        )
+        return
+    info = {"map_name": engine.map_name, "map_version": engine.map_version, "info": engine.info}
+    conn.send_bytes(protocols.pack("ready", info))
+    while True:
+        try:
+            payload = conn.recv_bytes()
+        except (EOFError, OSError):
+            return
+        if not payload:
+            return
+        reply = handle_localize(payload, engine, limits)
+        kind = b"E" if protocols.message_type(reply) == "error" else b"R"
+        conn.send_bytes(kind + reply)
