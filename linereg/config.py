@@ -81,6 +81,7 @@ class RefineConfig:
     reassociate: bool = True  # re-match at the refined pose with distance min(match.distance_px, outlier_px)
     min_matches: int = 4  # fewer correspondences than this (3 is minimal for 6 DoF) is not refined
     parallel_angle_deg: float = 2.0  # all matched 3D lines within this of one direction: degenerate
+    near_fraction: float = 0.05  # matched 3D segments are cut at this fraction of the median depth
     min_depth_m: float = 1e-3  # endpoints nearer than this (or behind the camera) are clamped to it
 
 

@@ -72,10 +72,10 @@ def refine_pose(
     rematch = replace(match, distance_px=min(match.distance_px, config.outlier_px))
     current, pose, rounds, problem = matches, cam_from_world, 0, None
     while rounds < config.max_rounds:
-        if _degenerate(lines3d[current[:, 1]], config):
+        problem, current = _problem(coeffs, lines3d, camera, current, pose, config)
+        if problem is None:
             return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
         rounds += 1
-        problem = _problem(coeffs, lines3d, camera, current, config)
         try:
             pose = _optimise(problem, pose, config)
         except RuntimeError as e:  # gtsam: indeterminant linear system
@@ -91,9 +91,9 @@ def refine_pose(
             break
         current, problem = new, None
     if problem is None:  # the last round changed the set: report the new set at the last pose
-        if _degenerate(lines3d[current[:, 1]], config):
+        problem, current = _problem(coeffs, lines3d, camera, current, pose, config)
+        if problem is None:
             return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
-        problem = _problem(coeffs, lines3d, camera, current, config)
     covariance = _covariance(problem, pose, config)
     if not np.isfinite(covariance).all():
         return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
@@ -109,12 +109,23 @@ class _Problem:
 
 
 def _problem(
-    coeffs: np.ndarray, lines3d: np.ndarray, camera: Camera, matches: np.ndarray, config: RefineConfig
-) -> _Problem:
-    """Returns the factor graph of eq. "costs" over ``matches``; coeffs: (N, 3) lines of all 2D segments."""
-    projection = LineProjection.build(
-        coeffs[matches[:, 0]], lines3d[matches[:, 1]], camera, config.min_depth_m
-    )
+    coeffs: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    matches: np.ndarray,
+    cam_from_world: np.ndarray,
+    config: RefineConfig,
+) -> tuple[_Problem | None, np.ndarray]:
+    """Returns (factor graph of eq. "costs", or None if degenerate; (K', 2) matches it holds).
+
+    coeffs: (N, 3) lines of all 2D segments. Matched 3D segments are cut to their part in front of the
+    camera at ``cam_from_world``; segments wholly behind it are dropped.
+    """
+    segments, front = _front_part(lines3d[matches[:, 1]], cam_from_world, config)
+    matches, segments = matches[front], segments[front]
+    if _degenerate(segments, config):
+        return None, matches
+    projection = LineProjection.build(coeffs[matches[:, 0]], segments, camera, config.min_depth_m)
     noise = gtsam.noiseModel.Isotropic.Sigma(2 * len(matches), 1.0)  # sigma 1 px: kernel_px is in pixels
     if config.kernel != "none":
         # Scalar: each endpoint residual gets its own weight (and loss); Block would weight the whole image
@@ -124,7 +135,28 @@ def _problem(
         noise = gtsam.noiseModel.Robust.Create(kernel, noise)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(line_factor(POSE_KEY, projection, noise))
-    return _Problem(graph, projection)
+    return _Problem(graph, projection), matches
+
+
+def _front_part(
+    segments: np.ndarray, cam_from_world: np.ndarray, config: RefineConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((K, 6) segments cut at the near plane, (K,) bool some part in front of it).
+
+    The cost only needs two points of each 3D line (eq. "costs" is collinearity), so an endpoint behind
+    the camera is replaced by the segment's crossing of a near plane at ``near_fraction`` of the median
+    depth: near-zero depths would give huge Jacobians that drag the pose even under a robust kernel.
+    """
+    a, b = segments[:, 0:3], segments[:, 3:6]
+    za = a @ cam_from_world[2, :3] + cam_from_world[2, 3]
+    zb = b @ cam_from_world[2, :3] + cam_from_world[2, 3]
+    depth = float(np.median(np.r_[za, zb])) if len(segments) else 0.0
+    near = max(config.min_depth_m, config.near_fraction * depth)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        crossing = a + ((near - za) / (zb - za))[:, None] * (b - a)
+    a = np.where((za < near)[:, None], crossing, a)
+    b = np.where((zb < near)[:, None], crossing, b)
+    return np.c_[a, b], (za >= near) | (zb >= near)
 
 
 def _values(cam_from_world: np.ndarray) -> gtsam.Values:
@@ -221,5 +253,8 @@ def _unrefined(
     log.debug("degenerate refinement with %d matches: keeping the input pose", len(matches))
     rms = float("nan")
     if len(matches):
-        rms = _rms_px(_problem(coeffs, lines3d, camera, matches, config), cam_from_world)
+        projection = LineProjection.build(
+            coeffs[matches[:, 0]], lines3d[matches[:, 1]], camera, config.min_depth_m
+        )
+        rms = _rms_px(_Problem(gtsam.NonlinearFactorGraph(), projection), cam_from_world)
     return Refinement(cam_from_world.copy(), matches, np.full((6, 6), np.nan), rms, rounds)
