@@ -26,6 +26,7 @@ from .geometry import (
     make_cam_from_world,
     nearest_rotation,
     pixels_to_rays,
+    project_points,
     rotation_error_deg,
 )
 from .matching import match_matrix, match_segments, project_segments
@@ -35,6 +36,7 @@ from .timing import StageTimer
 log = logging.getLogger(__name__)
 
 SAMPLE_SIZE = 6  # DLT-Lines: 12 unknowns up to scale, 2 equations per line
+_BATCH = 32  # hypotheses solved together; bounds the (6 B)^2 pretest matrix
 _RUNNER_UP_ANGLE_DEG = 2.0  # hypotheses whose rotations differ by more are distinct poses
 
 
@@ -57,50 +59,60 @@ def dlt_lines(lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera) -> np.nd
 
 def _dlt(rays1: np.ndarray, rays2: np.ndarray, lines3d: np.ndarray) -> np.ndarray:
     """Returns (4, 4) ``cam_from_world`` from (K, 3) normalised endpoint rays and (K, 6) 3D segments."""
-    T2 = _normalizing_2d(np.r_[rays1[:, :2], rays2[:, :2]])
-    points = lines3d.reshape(-1, 3)
-    T3 = _normalizing_3d(points)
+    P, normals = _projections(rays1[None], rays2[None], lines3d[None])
+    return _rigid_from_projection(P[0], lines3d.reshape(-1, 3), normals[0])
+
+
+def _projections(rays1: np.ndarray, rays2: np.ndarray, lines3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((B, 3, 4) ``P ~ [R | t]``, (B, K, 3) unit plane normals) of B sets of K correspondences.
+
+    rays1, rays2: (B, K, 3) normalised endpoint rays; lines3d: (B, K, 6). P is scaled to mean singular
+    value 1 of its 3x3 part and signed so that most endpoints lie in front of the camera.
+    """
+    points = lines3d.reshape(len(lines3d), -1, 3)
     # the line through two normalised points is K^T l_px, the interpretation-plane normal
     normals = np.cross(rays1, rays2)
-    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals /= np.linalg.norm(normals, axis=-1, keepdims=True)
+    T2 = _normalizing(np.concatenate([rays1[..., :2], rays2[..., :2]], axis=1))
+    T3 = _normalizing(points)
     # lines map as l' = T2^-T l when points map as x' = T2 x; then l'^T (T2 P T3^-1) X' = 0
-    lines = normals @ np.linalg.inv(T2)
-    lines /= np.linalg.norm(lines, axis=1, keepdims=True)
-    X = np.c_[points, np.ones(len(points))] @ T3.T
+    lines = np.einsum("bki,bij->bkj", normals, np.linalg.inv(T2))
+    lines /= np.linalg.norm(lines, axis=-1, keepdims=True)
+    X = np.einsum("bij,bkj->bki", T3, np.concatenate([points, np.ones((*points.shape[:2], 1))], axis=-1))
     # l^T P X = kron(l, X) . vec(P) (row-major): one row per endpoint
-    A = np.einsum("ki,kj->kij", np.repeat(lines, 2, axis=0), X).reshape(-1, 12)
-    P = np.linalg.inv(T2) @ np.linalg.svd(A)[2][-1].reshape(3, 4) @ T3
-    return _rigid_from_projection(P, points, normals)
+    A = np.einsum("bki,bkj->bkij", np.repeat(lines, 2, axis=1), X).reshape(len(X), -1, 12)
+    P = np.linalg.inv(T2) @ np.linalg.svd(A, full_matrices=False)[2][:, -1].reshape(-1, 3, 4) @ T3
+    depth = np.einsum("bj,bkj->bk", P[:, 2, :3], points) + P[:, 2, 3:4]
+    sign = np.where(np.sign(depth).sum(axis=1) >= 0, 1.0, -1.0)  # most endpoints in front of the camera
+    scale = np.linalg.svd(P[:, :, :3], compute_uv=False).mean(axis=1)
+    return P * (sign / scale)[:, None, None], normals
 
 
 def _rigid_from_projection(P: np.ndarray, points: np.ndarray, normals: np.ndarray) -> np.ndarray:
-    """Returns (4, 4) ``cam_from_world`` closest to a (3, 4) ``P ~ [R | t]`` known up to scale and sign.
+    """Returns (4, 4) ``cam_from_world`` closest to a (3, 4) ``P ~ [R | t]`` scaled and signed.
 
     points: (2K, 3) world endpoints, two per row of normals (K, 3) (unit interpretation-plane normals).
     """
-    depth = points @ P[2, :3] + P[2, 3]
-    sign = 1.0 if np.sign(depth).sum() >= 0 else -1.0  # most endpoints in front of the camera
-    M = sign * P[:, :3] / np.linalg.svd(P[:, :3], compute_uv=False).mean()
-    R = nearest_rotation(M)
+    R = nearest_rotation(P[:, :3])
     # t given R, linear least squares on eq. (coplanar): n_i . (R X + t) = 0 for both endpoints
     n = np.repeat(normals, 2, axis=0)
     t = np.linalg.lstsq(n, -np.einsum("kj,kj->k", n, points @ R.T), rcond=None)[0]
     return make_cam_from_world(R, t)
 
 
-def _normalizing_2d(points: np.ndarray) -> np.ndarray:
-    """Returns (3, 3) similarity moving (K, 2) points to centroid 0 and mean distance sqrt(2) (Hartley)."""
-    centroid = points.mean(axis=0)
-    scale = np.sqrt(2.0) / max(np.linalg.norm(points - centroid, axis=1).mean(), 1e-12)
-    return np.array([[scale, 0.0, -scale * centroid[0]], [0.0, scale, -scale * centroid[1]], [0.0, 0.0, 1.0]])
+def _normalizing(points: np.ndarray) -> np.ndarray:
+    """Returns (B, d+1, d+1) similarities moving (B, K, d) points to centroid 0, mean distance sqrt(d).
 
-
-def _normalizing_3d(points: np.ndarray) -> np.ndarray:
-    """Returns (4, 4) similarity moving (K, 3) points to centroid 0 and mean distance sqrt(3) (Hartley)."""
-    centroid = points.mean(axis=0)
-    scale = np.sqrt(3.0) / max(np.linalg.norm(points - centroid, axis=1).mean(), 1e-12)
-    T = np.diag([scale, scale, scale, 1.0])
-    T[:3, 3] = -scale * centroid
+    Hartley's normalisation, per batch element, for d = 2 (image) or d = 3 (world).
+    """
+    d = points.shape[-1]
+    centroid = points.mean(axis=1)
+    spread = np.linalg.norm(points - centroid[:, None], axis=-1).mean(axis=1)
+    scale = np.sqrt(d) / np.maximum(spread, 1e-12)
+    T = np.zeros((len(points), d + 1, d + 1))
+    T[:, np.arange(d), np.arange(d)] = scale[:, None]
+    T[:, :d, d] = -scale[:, None] * centroid
+    T[:, d, d] = 1.0
     return T
 
 
@@ -159,47 +171,56 @@ def register_ransac6(
 
 
 def _ransac(lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: RegisterConfig) -> _Best:
-    """Returns the hypothesis with most inliers over random 6-pair samples (paper's RANSAC baseline)."""
+    """Returns the hypothesis with most inliers over random 6-pair samples (paper's RANSAC baseline).
+
+    Samples are drawn and solved in batches (numpy, not Python, loops); hypotheses are then visited in
+    draw order, so stopping and the iteration count are those of the one-at-a-time algorithm.
+    """
     cfg = config.ransac6
     rng = np.random.default_rng(cfg.seed)
     rays1 = pixels_to_rays(camera, lines2d[:, 0:2])
     rays2 = pixels_to_rays(camera, lines2d[:, 2:4])
     best = _Best(np.eye(4), np.zeros((0, 2), dtype=np.int64), tested=[])
     stop = cfg.stop_inlier_fraction * len(lines2d)
-    for iteration in range(1, cfg.max_iterations + 1):
-        best.iterations = iteration
-        i2d = rng.choice(len(lines2d), SAMPLE_SIZE, replace=False)
-        j3d = rng.choice(len(lines3d), SAMPLE_SIZE, replace=False)
+    for start in range(0, cfg.max_iterations, _BATCH):
+        size = min(_BATCH, cfg.max_iterations - start)
+        i2d, j3d = _draw(rng, len(lines2d), size), _draw(rng, len(lines3d), size)
         with np.errstate(all="ignore"):
-            cam_from_world = _dlt(rays1[i2d], rays2[i2d], lines3d[j3d])
-        if not np.isfinite(cam_from_world).all():
-            continue
-        if (
-            _sample_inliers(lines2d[i2d], lines3d[j3d], camera, cam_from_world, config)
-            < cfg.min_sample_inliers
-        ):
-            continue  # cheap pretest: a pose that does not explain its own sample cannot win
-        matches = match_segments(lines2d, lines3d, camera, cam_from_world, config.match)
-        best.tested.append((len(matches), cam_from_world[:3, :3]))
-        if len(matches) > best.num_inliers:
-            best.cam_from_world, best.matches = cam_from_world, matches
-            if best.num_inliers >= stop:
-                break
+            P, normals = _projections(rays1[i2d], rays2[i2d], lines3d[j3d])
+            # cheap pretest: a hypothesis that does not explain its own sample cannot win
+            passed = _pretest(P, lines2d[i2d], lines3d[j3d], camera, config) >= cfg.min_sample_inliers
+        best.iterations = start + size
+        for b in np.flatnonzero(passed):
+            cam_from_world = _rigid_from_projection(P[b], lines3d[j3d[b]].reshape(-1, 3), normals[b])
+            matches = match_segments(lines2d, lines3d, camera, cam_from_world, config.match)
+            best.tested.append((len(matches), cam_from_world[:3, :3]))
+            if len(matches) > best.num_inliers:
+                best.cam_from_world, best.matches = cam_from_world, matches
+                if best.num_inliers >= stop:
+                    best.iterations = start + b + 1
+                    return best
     log.debug("ransac6: %d iterations, %d inliers", best.iterations, best.num_inliers)
     return best
 
 
-def _sample_inliers(
-    lines2d: np.ndarray,
-    lines3d: np.ndarray,
-    camera: Camera,
-    cam_from_world: np.ndarray,
-    config: RegisterConfig,
-) -> int:
-    """Returns how many of K sampled pairs (row i with row i) pass the shared inlier test."""
-    projected, visible = project_segments(lines3d, camera, cam_from_world, config.match.min_depth_m)
-    inlier, _ = match_matrix(lines2d, projected, config.match)
-    return int((np.diagonal(inlier) & visible).sum())
+def _draw(rng: np.random.Generator, n: int, size: int) -> np.ndarray:
+    """Returns (size, 6) int64: each row 6 distinct random indices below n."""
+    return np.argpartition(rng.random((size, n)), SAMPLE_SIZE - 1, axis=1)[:, :SAMPLE_SIZE]
+
+
+def _pretest(
+    P: np.ndarray, lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: RegisterConfig
+) -> np.ndarray:
+    """Returns (B,) how many of each hypothesis' own K pairs pass the shared inlier test under P.
+
+    P: (B, 3, 4) scaled, signed projections; lines2d: (B, K, 4); lines3d: (B, K, 6), row k with row k.
+    """
+    B, K = lines2d.shape[:2]
+    ends = np.einsum("bij,bkj->bki", P[:, :, :3], lines3d.reshape(B, 2 * K, 3)) + P[:, None, :, 3]
+    visible = (ends[..., 2] >= config.match.min_depth_m).reshape(B, K, 2).all(axis=2)
+    projected = project_points(camera, ends.reshape(-1, 3)).reshape(B * K, 4)
+    inlier, _ = match_matrix(lines2d.reshape(B * K, 4), projected, config.match)  # diagonal: own pairs
+    return (np.diagonal(inlier).reshape(B, K) & visible).sum(axis=1)
 
 
 def _refine(
