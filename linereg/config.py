@@ -17,7 +17,10 @@ class VanishingConfig:
     """2D vanishing directions by multiple RANSAC on interpretation-plane normals (Rother 2002)."""
 
     num_clusters: int = 5  # paper: c = 5 clusters before merging
-    inlier_angle_deg: float = 1.5  # a segment belongs to a VD if its plane passes within this angle of it
+    inlier_angle_deg: float = 1.5  # a segment belongs to a VD if it points within this angle of the VP
+    # endpoint noise (px, std): a segment of length L also gets 2*sqrt(2)*noise_px/L rad of angular slack,
+    # so short segments (whose direction is uncertain) are judged fairly without loosening long ones
+    noise_px: float = 2.0
     merge_angle_deg: float = 5.0  # VDs closer than this are one (paper: merge near-duplicates)
     ransac_iterations: int = 200
     min_lines: int = 3  # smaller clusters are not a direction
@@ -45,6 +48,8 @@ class RotationConfig:
     pair_angle_tolerance_deg: float = 5.0  # angle(VD1, VD2) must match angle(D1, D2) within this
     third_pair_tolerance_deg: float = 5.0  # a third pair validates a candidate within this
     dedupe_angle_deg: float = 1.0  # candidates closer than this are one
+    min_pair_angle_deg: float = 10.0  # two directions closer than this to (anti)parallel cannot fix a rotation
+    top_k: int = 3  # pairings are tried among the strongest top_k VDs and top_k 3D clusters
     max_candidates: int = 24
 
 
