@@ -1,0 +1,174 @@
+"""Rotation candidates from vanishing-direction <-> 3D-direction pairings (paper III-B, Algorithm 1, eq. 2).
+
+A vanishing direction is the image of a 3D direction: ``v_2d = R v_3d`` (eq. 1). Two pairs fix R (eq. 2,
+the third column being the cross product of the first two). Which VD goes with which 3D cluster is unknown
+and a 3D line has no sign, so every pairing and every sign is a candidate: 8 for two pairs (paper) when the
+two directions are perpendicular; a pairing whose angle(VD1, VD2) differs from angle(s1 D1, s2 D2) cannot
+be a rotation and is rejected (for non-perpendicular directions that leaves 4). A third pair, where both
+sides have one, validates a candidate. VD signs are arbitrary (z >= 0), so signs live on the 3D side.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .camera import Camera
+from .config import RegisterConfig, RotationConfig
+from .directions import DirectionClusters
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, eq=False)
+class RotationCandidate:
+    """A world -> camera rotation ``R`` (``v_cam = R d_world``) and the pairings it was fitted on.
+
+    pairs: ((vd index, cluster index, sign), ...) with ``R (sign * D[cluster]) ~ V[vd]``; two or three.
+    residual_deg: largest angle between ``R (sign * D)`` and its VD over the pairs.
+    score: plausibility used for ordering (higher first): support of the directions paired, less residual.
+    """
+
+    R: np.ndarray
+    pairs: tuple[tuple[int, int, int], ...]
+    residual_deg: float
+    score: float
+
+
+def rotation_candidates(
+    vds: DirectionClusters, clusters: DirectionClusters, config: RotationConfig | None = None
+) -> list[RotationCandidate]:
+    """Returns distinct rotation candidates, most plausible first, at most ``config.max_candidates``.
+
+    vds: camera-frame vanishing directions (strongest first); clusters: world-frame parallel clusters.
+    Pairings are tried among the ``config.top_k`` strongest of each (an image may not show the map's
+    second-strongest direction). Empty when either side has fewer than two non-parallel directions.
+    """
+    config = config or RotationConfig()
+    V, D = vds.directions[: config.top_k], clusters.directions[: config.top_k]
+    pairs = _consistent_pairings(V, D, config)  # (P, 2, 3)
+    if len(pairs) == 0:
+        return []
+    R = _fit(V, D, pairs)
+    third = _third_pairs(R, V, D, pairs, config.third_pair_tolerance_deg)  # (P, 3), -1 rows: none
+    confirmed = third[:, 0] >= 0
+    if confirmed.any():  # a third pair confirmed some: drop the others (all could have been checked)
+        pairs = np.concatenate([pairs, third[:, None, :]], axis=1)[confirmed]
+        R = _fit(V, D, pairs)
+    residual = _residual_deg(R, V, D, pairs)
+    wv, wd = _weights(vds.support[: len(V)]), _weights(clusters.support[: len(D)])
+    score = np.sqrt(wv[pairs[..., 0]] * wd[pairs[..., 1]]).sum(axis=1) - 0.01 * residual
+    order = _dedupe(R, np.argsort(-score, kind="stable"), config.dedupe_angle_deg)[: config.max_candidates]
+    return [
+        RotationCandidate(
+            R[n], tuple((int(i), int(a), int(s)) for i, a, s in pairs[n]), residual[n], score[n]
+        )
+        for n in order
+    ]
+
+
+def rotation_candidates_from_segments(
+    lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: RegisterConfig | None = None
+) -> tuple[list[RotationCandidate], DirectionClusters, DirectionClusters]:
+    """Returns (rotation candidates, vanishing directions, 3D parallel clusters) of (N, 4) undistorted pixel
+    and (M, 6) world segments: Algorithm 1 end to end."""
+    from .parallel import parallel_clusters
+    from .vanishing import vanishing_directions
+
+    config = config or RegisterConfig()
+    vds = vanishing_directions(lines2d, camera, config.vanishing)
+    clusters = parallel_clusters(lines3d, config.parallel)
+    return rotation_candidates(vds, clusters, config.rotation), vds, clusters
+
+
+def _consistent_pairings(V: np.ndarray, D: np.ndarray, config: RotationConfig) -> np.ndarray:
+    """Returns (P, 2, 3) int64 pairings ((i, a, s1), (j, b, s2)), i < j, a != b, whose angles agree:
+    angle(V_i, V_j) ~ angle(s1 D_a, s2 D_b); directions (anti)parallel within ``min_pair_angle_deg`` are
+    never paired (they cannot fix a rotation)."""
+    combos = [
+        ((i, a, s1), (j, b, s2))
+        for i, j in itertools.combinations(range(len(V)), 2)
+        for a, b in itertools.permutations(range(len(D)), 2)
+        for s1, s2 in itertools.product((1, -1), repeat=2)
+    ]
+    pairs = np.array(combos, dtype=np.int64).reshape(-1, 2, 3)
+    i, j, a, b = pairs[:, 0, 0], pairs[:, 1, 0], pairs[:, 0, 1], pairs[:, 1, 1]
+    cos_v = np.einsum("pk,pk->p", V[i], V[j])
+    cos_d = np.einsum("pk,pk->p", D[a], D[b]) * pairs[:, 0, 2] * pairs[:, 1, 2]
+    max_cos = np.cos(np.radians(config.min_pair_angle_deg))
+    gap = np.abs(_angle_deg(cos_v) - _angle_deg(cos_d))
+    ok = (np.abs(cos_v) <= max_cos) & (np.abs(cos_d) <= max_cos) & (gap <= config.pair_angle_tolerance_deg)
+    return pairs[ok]
+
+
+def _fit(V: np.ndarray, D: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Returns (P, 3, 3) proper rotations best mapping each ``s D_a`` onto ``V_i`` over (P, k, 3) pairings
+    (orthogonal Procrustes, eq. 2). With two pairs the cross products ``V_i x V_j <-> s1 D_a x s2 D_b`` are
+    added as the third column (paper), so the fit is well-posed."""
+    v = V[pairs[..., 0]]  # (P, k, 3)
+    d = pairs[..., 2, None] * D[pairs[..., 1]]
+    if pairs.shape[1] == 2:
+        v = np.concatenate([v, _unit(np.cross(v[:, 0], v[:, 1]))[:, None]], axis=1)
+        d = np.concatenate([d, _unit(np.cross(d[:, 0], d[:, 1]))[:, None]], axis=1)
+    return _nearest_rotations(np.einsum("pki,pkj->pij", v, d))  # argmax_R sum_k v_k . R d_k
+
+
+def _nearest_rotations(M: np.ndarray) -> np.ndarray:
+    """Returns (P, 3, 3) proper rotations closest to each (P, 3, 3) M: ``geometry.nearest_rotation`` batched."""
+    U, _, Vt = np.linalg.svd(M)
+    flip = np.linalg.det(U @ Vt) < 0
+    U[flip, :, 2] *= -1.0  # never a reflection: det(R) = +1
+    return U @ Vt
+
+
+def _third_pairs(
+    R: np.ndarray, V: np.ndarray, D: np.ndarray, pairs: np.ndarray, tolerance_deg: float
+) -> np.ndarray:
+    """Returns (P, 3) int64 (vd, cluster, sign): for each rotation, the unused VD and unused cluster it maps
+    closest within ``tolerance_deg`` (sign-free: VD signs are arbitrary), or a row of -1."""
+    cos = np.einsum("ki,pij,cj->pkc", V, R, D)  # (P, VDs, clusters): V_k . R D_c
+    p = np.arange(len(pairs))[:, None]
+    cos[p, pairs[..., 0], :] = 0.0  # used VDs and clusters cannot pair again
+    cos[p, :, pairs[..., 1]] = 0.0
+    flat = np.abs(cos).reshape(len(pairs), -1)
+    best = np.argmax(flat, axis=1)
+    k, c = np.unravel_index(best, cos.shape[1:])
+    ok = flat[np.arange(len(pairs)), best] >= np.cos(np.radians(tolerance_deg))
+    sign = np.where(cos[np.arange(len(pairs)), k, c] > 0, 1, -1)
+    return np.where(ok[:, None], np.stack([k, c, sign], axis=1), -1).astype(np.int64)
+
+
+def _residual_deg(R: np.ndarray, V: np.ndarray, D: np.ndarray, pairs: np.ndarray) -> np.ndarray:
+    """Returns (P,) the largest angle (deg) between ``R s D_a`` and ``V_i`` over each rotation's pairs."""
+    d = pairs[..., 2, None] * D[pairs[..., 1]]  # (P, k, 3)
+    cos = np.einsum("pki,pij,pkj->pk", V[pairs[..., 0]], R, d)
+    return _angle_deg(cos.min(axis=1))
+
+
+def _dedupe(R: np.ndarray, order: np.ndarray, angle_deg: float) -> list[int]:
+    """Returns the indices in ``order`` whose rotation is not within ``angle_deg`` of an earlier kept one."""
+    flat = R.reshape(len(R), 9)
+    # trace(R_a^T R_b) = <R_a, R_b>; angle < a  <=>  trace > 1 + 2 cos(a)
+    close = flat @ flat.T > 1.0 + 2.0 * np.cos(np.radians(angle_deg))
+    kept: list[int] = []
+    for n in order:
+        if not close[n, kept].any():
+            kept.append(int(n))
+    return kept
+
+
+def _weights(support: np.ndarray) -> np.ndarray:
+    """Returns support normalised to sum 1 (uniform if all zero)."""
+    total = float(np.sum(support))
+    return support / total if total > 0 else np.full(len(support), 1.0 / max(len(support), 1))
+
+
+def _angle_deg(cos: np.ndarray) -> np.ndarray:
+    return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=-1, keepdims=True)
