@@ -101,7 +101,7 @@ def line_factor(
     """Returns a gtsam CustomFactor on the ``Pose3`` (world_T_cam) at ``key`` with error of length 2K."""
 
     def error(this: gtsam.CustomFactor, values: gtsam.Values, jacobians: list | None) -> np.ndarray:
-        pose = values.atPose3(this.keys()[0])
+        pose = values.atPose3(key)
         points = projection.points_cam(pose.rotation().matrix(), pose.translation())
         e, J = projection.evaluate(points, jacobians is not None)
         if jacobians is not None:

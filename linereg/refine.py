@@ -11,12 +11,14 @@ from __future__ import annotations
 
 import logging
 from dataclasses import dataclass, replace
+from typing import Any
 
 import gtsam
 import numpy as np
 
 from .camera import Camera
 from .config import MatchConfig, RefineConfig
+from .errors import InvalidInputError
 from .geometry import invert, line_coefficients, segment_directions
 from .line_factor import LineProjection, line_factor
 from .matching import match_segments
@@ -24,10 +26,10 @@ from .matching import match_segments
 log = logging.getLogger(__name__)
 
 POSE_KEY = 0
-_KERNELS = {
-    "huber": gtsam.noiseModel.mEstimator.Huber,
-    "cauchy": gtsam.noiseModel.mEstimator.Cauchy,
-    "tukey": gtsam.noiseModel.mEstimator.Tukey,
+_KERNELS: dict[str, Any] = {
+    "huber": gtsam.noiseModel.mEstimator.Huber.Create,
+    "cauchy": gtsam.noiseModel.mEstimator.Cauchy.Create,
+    "tukey": gtsam.noiseModel.mEstimator.Tukey.Create,
 }
 
 
@@ -65,8 +67,12 @@ def refine_pose(
     lines2d: (N, 4) undistorted pixels; lines3d: (M, 6) world; cam_from_world: (4, 4) initial pose;
     matches: (K, 2) int64 ``(i2d, j3d)`` initial correspondences. Degenerate input (fewer than
     ``config.min_matches`` matches, all 3D lines parallel, singular system) returns the input pose with
-    NaN covariance, never raises.
+    NaN covariance, never raises (an unknown ``config.kernel`` raises InvalidInputError).
     """
+    if config.kernel not in (*_KERNELS, "none"):
+        raise InvalidInputError(
+            f"refine.kernel must be one of {', '.join(_KERNELS)}, none; got {config.kernel!r}"
+        )
     matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
     coeffs = line_coefficients(lines2d)  # (N, 3): once, every round indexes it
     rematch = replace(match, distance_px=min(match.distance_px, config.outlier_px))
@@ -126,10 +132,10 @@ def _problem(
     if _degenerate(segments, config):
         return None, matches
     projection = LineProjection.build(coeffs[matches[:, 0]], segments, camera, config.min_depth_m)
-    noise = gtsam.noiseModel.Isotropic.Sigma(2 * len(matches), 1.0)  # sigma 1 px: kernel_px is in pixels
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2 * len(matches), 1.0)  # kernel_px is px
     if config.kernel != "none":
         # Scalar: each endpoint residual gets its own weight (and loss); Block would weight the whole image
-        kernel = _KERNELS[config.kernel].Create(
+        kernel = _KERNELS[config.kernel](
             config.kernel_px, gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar
         )
         noise = gtsam.noiseModel.Robust.Create(kernel, noise)
@@ -144,13 +150,13 @@ def _front_part(
     """Returns ((K, 6) segments cut at the near plane, (K,) bool some part in front of it).
 
     The cost only needs two points of each 3D line (eq. "costs" is collinearity), so an endpoint behind
-    the camera is replaced by the segment's crossing of a near plane at ``near_fraction`` of the median
+    the camera is replaced by the segment's crossing of a near plane at ``near_fraction`` of the mean
     depth: near-zero depths would give huge Jacobians that drag the pose even under a robust kernel.
     """
     a, b = segments[:, 0:3], segments[:, 3:6]
     za = a @ cam_from_world[2, :3] + cam_from_world[2, 3]
     zb = b @ cam_from_world[2, :3] + cam_from_world[2, 3]
-    depth = float(np.median(np.r_[za, zb])) if len(segments) else 0.0
+    depth = 0.5 * float(za.mean() + zb.mean()) if len(segments) else 0.0
     near = max(config.min_depth_m, config.near_fraction * depth)
     with np.errstate(divide="ignore", invalid="ignore"):
         crossing = a + ((near - za) / (zb - za))[:, None] * (b - a)
@@ -229,8 +235,9 @@ def _degenerate(segments3d: np.ndarray, config: RefineConfig) -> bool:
     """Returns True when (K, 6) matched 3D segments cannot fix a pose: too few, or all parallel."""
     if len(segments3d) < config.min_matches:
         return True
-    s = np.linalg.svd(segment_directions(segments3d), compute_uv=False)
-    return bool(s[1] < np.sin(np.radians(config.parallel_angle_deg)) * s[0])
+    d = segment_directions(segments3d)
+    eig = np.linalg.eigvalsh(d.T @ d)  # squared singular values, ascending; 3x3 is cheaper than an SVD
+    return bool(eig[1] < np.sin(np.radians(config.parallel_angle_deg)) ** 2 * eig[2])
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from linereg.config import MatchConfig, RefineConfig
+from linereg.errors import InvalidInputError
 from linereg.geometry import camera_center, invert, line_coefficients, pose_errors, transform_points
 from linereg.line_factor import LineProjection, line_factor, line_residuals
 from linereg.refine import Refinement, refine_pose
@@ -270,3 +271,30 @@ def test_endpoints_behind_the_camera_do_not_blow_up():
         assert np.isfinite(result.cam_from_world).all() and np.isfinite(result.covariance).all()
         rot_deg, _, rel = pose_errors(result.cam_from_world, scene.cam_from_world)
         assert rot_deg < 0.5 and rel < 0.005
+
+
+@pytest.mark.parametrize("kernel", ["cauchy", "tukey", "none"])
+def test_other_kernels_recover_the_pose(kernel):
+    scene = paper_scene(np.random.default_rng(12), 100, 0.3, 0.3, 0.0)
+    start = perturb(scene.cam_from_world, np.random.default_rng(13), 2.0, 0.05)
+    config = RefineConfig(kernel=kernel, kernel_px=5.0)
+    result = refine_pose(
+        scene.lines2d, scene.lines3d, scene.camera, start, scene.true_matches, config, MatchConfig()
+    )
+    rot_deg, _, rel = pose_errors(result.cam_from_world, scene.cam_from_world)
+    assert rot_deg < 0.05 and rel < 1e-3 and np.isfinite(result.covariance).all()
+
+
+def test_unknown_kernel_is_rejected():
+    scene = paper_scene(np.random.default_rng(14), 30, 0.0, 0.0, 0.0)
+    config = RefineConfig(kernel="gauss")  # type: ignore[arg-type]
+    with pytest.raises(InvalidInputError, match="kernel"):
+        refine_pose(
+            scene.lines2d,
+            scene.lines3d,
+            scene.camera,
+            scene.cam_from_world,
+            scene.true_matches,
+            config,
+            MatchConfig(),
+        )
