@@ -80,6 +80,9 @@ class RefineConfig:
     kernel: Literal["huber", "cauchy", "tukey", "none"] = "huber"  # per scalar residual (gtsam Scalar scheme)
     kernel_px: float = 2.0
     outlier_px: float = 5.0  # a match whose worst endpoint is farther than this is dropped
+    # ... or farther than outlier_sigmas robust sigmas (MAD) of the residuals, but never below min_outlier_px
+    outlier_sigmas: float = 3.0  # 0: always outlier_px
+    min_outlier_px: float = 2.0
     max_rounds: int = 5  # optimise -> reject -> re-associate rounds
     max_iterations: int = 50  # Levenberg-Marquardt iterations per round
     relative_error_tol: float = 1e-5  # LM stops when the cost drops by less than this fraction

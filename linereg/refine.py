@@ -75,7 +75,6 @@ def refine_pose(
         )
     matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
     coeffs = line_coefficients(lines2d)  # (N, 3): once, every round indexes it
-    rematch = replace(match, distance_px=min(match.distance_px, config.outlier_px))
     current, pose, rounds, problem = matches, cam_from_world, 0, None
     while rounds < config.max_rounds:
         problem, current = _problem(coeffs, lines3d, camera, current, pose, config)
@@ -88,11 +87,13 @@ def refine_pose(
             log.debug("refinement failed: %s", e)
             return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
         # paper: reject the matches the refined pose does not explain, re-associate at that pose, repeat
+        threshold_px = _threshold_px(problem, pose, config)
         if config.reassociate:
+            rematch = replace(match, distance_px=min(match.distance_px, threshold_px))
             new = match_segments(lines2d, lines3d, camera, pose, rematch)
         else:
-            new = current[_worst_px(problem, pose) <= config.outlier_px]
-        log.debug("round %d: %d -> %d matches", rounds, len(current), len(new))
+            new = current[_worst_px(problem, pose) <= threshold_px]
+        log.debug("round %d: %d -> %d matches within %.2f px", rounds, len(current), len(new), threshold_px)
         if _same(new, current):
             break
         current, problem = new, None
@@ -194,6 +195,17 @@ def _residuals(problem: _Problem, cam_from_world: np.ndarray) -> np.ndarray:
 def _worst_px(problem: _Problem, cam_from_world: np.ndarray) -> np.ndarray:
     """Returns (K,) the larger endpoint distance of each match, px."""
     return np.abs(_residuals(problem, cam_from_world)).max(axis=1)
+
+
+def _threshold_px(problem: _Problem, cam_from_world: np.ndarray, config: RefineConfig) -> float:
+    """Returns the outlier distance px: ``outlier_sigmas`` robust sigmas of the residuals, clipped to
+    ``[min_outlier_px, outlier_px]``, so the test tightens as the pose converges on clean data."""
+    if config.outlier_sigmas <= 0:
+        return config.outlier_px
+    sigma = 1.4826 * float(
+        np.median(np.abs(_residuals(problem, cam_from_world)))
+    )  # MAD of zero-mean residuals
+    return float(np.clip(config.outlier_sigmas * sigma, config.min_outlier_px, config.outlier_px))
 
 
 def _rms_px(problem: _Problem, cam_from_world: np.ndarray) -> float:
