@@ -4,7 +4,8 @@ then reject outliers and re-associate at the refined pose, until the match set i
 One ``CustomFactor`` (``line_factor``) holds every correspondence of the image; a robust kernel with gtsam's
 ``Scalar`` reweight scheme weights each endpoint residual on its own (``Block`` would weight the whole
 image by the norm of all its residuals at once). The noise model has sigma = 1 px, so ``kernel_px`` is in
-pixels; the covariance is rescaled by the a-posteriori residual variance.
+pixels; the covariance is rescaled by the a-posteriori residual variance. The outlier threshold tightens
+from ``outlier_px`` to 3 robust sigmas of the residuals as the pose converges.
 """
 
 from __future__ import annotations
@@ -38,10 +39,12 @@ class Refinement:
     """A refined pose and the correspondences it explains.
 
     cam_from_world: (4, 4) float64, ``x_cam = R x_world + t``.
-    matches: (K, 2) int64 ``(i2d, j3d)``, every one within ``outlier_px`` at the refined pose.
+    matches: (K, 2) int64 ``(i2d, j3d)``, each within the last outlier threshold (<= ``outlier_px``) at
+        the refined pose; the input matches when the refinement was degenerate.
     covariance: (6, 6) float64 of gtsam's tangent ``xi = (omega rad, v m)`` of ``world_T_cam * Exp(xi)``,
         i.e. rotation and translation perturbations in the CAMERA (body) frame, (rotation, translation)
-        order, scaled by the residual variance (px^2); NaN when the refinement was degenerate.
+        order, scaled by the residuals' own variance (so it reflects the actual pixel noise); NaN when
+        the refinement was degenerate.
     rms_px: root mean square endpoint-to-line distance of ``matches`` at the refined pose.
     rounds: optimise -> reject -> re-associate rounds run.
     """
