@@ -86,7 +86,7 @@ class RefineConfig:
     max_rounds: int = 5  # optimise -> reject -> re-associate rounds
     max_iterations: int = 50  # Levenberg-Marquardt iterations per round
     relative_error_tol: float = 1e-5  # LM stops when the cost drops by less than this fraction
-    reassociate: bool = True  # re-match at the refined pose with distance min(match.distance_px, outlier_px)
+    reassociate: bool = True  # re-match at the refined pose within min(match.distance_px, outlier threshold)
     min_matches: int = 4  # fewer correspondences than this (3 is minimal for 6 DoF) is not refined
     parallel_angle_deg: float = 2.0  # all matched 3D lines within this of one direction: degenerate
     near_fraction: float = 0.05  # matched 3D segments are cut at this fraction of the mean depth
