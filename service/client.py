@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 import os
+import time
 import uuid
 from collections.abc import Sequence
 from pathlib import Path
@@ -34,7 +35,11 @@ class ServiceError(LineregError):
 
 
 class Client:
-    """A zenoh session to a linereg service; ``map_name`` None = the only map being served."""
+    """A zenoh session to a linereg service; ``map_name`` None = the only map being served.
+
+    ``balance``: send each request to one live instance's own key in turn (replicas); ``wait_s``: keep
+    trying to connect this long (a router that is starting).
+    """
 
     def __init__(
         self,
@@ -43,9 +48,12 @@ class Client:
         config_file: str | None = None,
         mode: str = "client",
         balance: bool = False,
+        wait_s: float = 0.0,
     ) -> None:
         endpoints = [connect] if isinstance(connect, str) else list(connect)
-        self.session = zenoh.open(session_config(mode, connect=endpoints, config_file=config_file))
+        self.session = _open_retrying(
+            session_config(mode, connect=endpoints, config_file=config_file), wait_s
+        )
         self._map_name = map_name
         self.balance = balance  # spread requests over the instances' own keys (replicas)
         self._ids = itertools.count()
@@ -138,6 +146,18 @@ class Client:
         if not ok:
             raise _error_of(payload)
         return protocols.unpack(payload)
+
+
+def _open_retrying(conf: zenoh.Config, wait_s: float) -> zenoh.Session:
+    """Returns an open session, retrying for up to ``wait_s`` seconds while the router is not up yet."""
+    end = time.monotonic() + wait_s
+    while True:
+        try:
+            return zenoh.open(conf)
+        except zenoh.ZError:
+            if time.monotonic() > end:
+                raise
+            time.sleep(0.1)
 
 
 def _error_of(payload: bytes) -> ServiceError:

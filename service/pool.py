@@ -183,9 +183,16 @@ class WorkerPool:
 
     def _slot_loop(self, index: int) -> None:
         while True:
-            job = self.jobs.get()
+            try:
+                job = self.jobs.get(timeout=1.0)
+            except queue.Empty:
+                job = False
             if job is None:
                 return
+            if not self._procs[index][0].is_alive():  # died while idle: replace before it gets work
+                self._replace(index, "died while idle")
+            if job is False:
+                continue
             if job.finished:  # answered ``timeout`` while it waited in the queue
                 continue
             self.in_flight += 1

@@ -22,6 +22,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--zenoh-config", help="zenoh json5 config file (mode/endpoints flags override it)")
     parser.add_argument("--deadline-ms", type=int, default=10_000, help="deadline of requests that set none")
     parser.add_argument("--max-payload-mb", type=float, default=16.0, help="largest accepted request")
+    parser.add_argument("--engine", default="service.engine:load_map_engine", help=argparse.SUPPRESS)
     parser.add_argument("--plain-logs", action="store_true", help="text logs instead of JSON lines")
 
 
@@ -42,7 +43,7 @@ def config_from_args(args: argparse.Namespace):
     )
     listen = tuple(args.listen) if args.listen else (() if args.mode == "client" else (DEFAULT_ENDPOINT,))
     return ServiceConfig(
-        loader="service.engine:load_map_engine", loader_args=(args.map, args.name), map_name=args.name,
+        loader=args.engine, loader_args=(args.map, args.name), map_name=args.name,
         instance=args.instance, workers=args.workers, queue_size=args.queue, mode=args.mode, listen=listen,
         connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
     )  # fmt: skip

@@ -1,0 +1,190 @@
+"""The service over zenoh on loopback (fake engine): replies, errors, faults, load, draining on SIGTERM."""
+
+from __future__ import annotations
+
+import multiprocessing as mp
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+import protocols
+from protocols import Limits, keys
+from service import Client, Service, ServiceConfig, ServiceError
+from service.fake import expected_pose
+from service.loadgen import CAMERA, run_client
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def free_endpoint() -> str:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return f"tcp/127.0.0.1:{s.getsockname()[1]}"
+
+
+def fake_config(endpoint: str, **kw) -> ServiceConfig:
+    return ServiceConfig(
+        loader="service.fake:load_fake_engine", loader_args=("", "fake"), listen=(endpoint,), **kw
+    )
+
+
+@pytest.fixture(scope="module")
+def service():
+    endpoint = free_endpoint()
+    config = fake_config(
+        endpoint, workers=2, queue_size=4, limits=Limits(max_payload_bytes=1_000_000), hard_grace_s=2.0
+    )
+    with Service(config) as svc:
+        svc.endpoint = endpoint
+        yield svc
+
+
+@pytest.fixture
+def client(service):
+    with Client(service.endpoint, map_name="fake") as c:
+        yield c
+
+
+def segments_with(first: list[float]) -> np.ndarray:
+    return np.array([first, [1.0, 2.0, 3.0, 4.0]])
+
+
+def test_localize_image_and_segments(client, rng):
+    image = rng.integers(0, 256, size=(240, 320), dtype=np.uint8)
+    reg = client.localize(image, CAMERA, timeout=5.0)
+    assert reg.success and np.allclose(reg.cam_from_world, expected_pose(image)) and len(reg.matches) == 4
+    lines = segments_with([5.0, 6.0, 7.0, 8.0])
+    assert np.allclose(client.localize_segments(lines, CAMERA).cam_from_world, expected_pose(lines))
+
+
+def test_info_stats_liveliness(client, service):
+    assert client.instances() == [("fake", service.instance)]
+    assert Client(service.endpoint).map_name == "fake"  # discovered through liveliness
+    info = client.info()
+    assert info["name"] == "fake" and info["instance"] == service.instance and "bounds" in info
+    stats = client.stats()
+    assert stats["workers_alive"] == 2 and stats["queue_size"] == 4 and "outcomes" in stats
+
+
+def test_garbage_and_oversize_get_error_codes(client):
+    ok, reply = client.request(keys.localize_key("fake"), b"\xc1garbage", 5.0)
+    assert not ok and protocols.decode_error(reply).code == "bad_request"
+    big = protocols.encode_request(
+        protocols.LocalizeRequest("big", CAMERA, np.zeros((240, 320, 4), np.uint16), "raw")
+    )  # 600 kB of pixels... over the 1 MB limit once doubled below
+    ok, reply = client.request(keys.localize_key("fake"), big + big, 5.0)
+    assert not ok and protocols.decode_error(reply).code == "too_large"
+
+
+def test_deadline_answers_timeout_and_the_service_keeps_answering(client):
+    start = time.monotonic()
+    with pytest.raises(ServiceError) as e:
+        client.localize_segments(segments_with([-2.0, 0.6, 1.0, 1.0]), CAMERA, timeout=0.3)
+    assert e.value.code == "timeout" and time.monotonic() - start < 1.0
+    assert client.localize_segments(segments_with([1.0, 1.0, 2.0, 2.0]), CAMERA).success
+
+
+def test_crashed_and_killed_workers_answer_internal_and_are_replaced(client, service):
+    with pytest.raises(ServiceError) as e:
+        client.localize_segments(segments_with([-1.0, 0.0, 1.0, 1.0]), CAMERA)  # the worker exits
+    assert e.value.code == "internal"
+    result = {}
+
+    def slow_query():
+        try:
+            client.localize_segments(segments_with([-2.0, 2.0, 1.0, 1.0]), CAMERA, timeout=5.0)
+        except ServiceError as err:
+            result["code"] = err.code
+
+    thread = threading.Thread(target=slow_query)
+    thread.start()
+    time.sleep(0.5)
+    for pid in service.pool.pids():  # one of them is processing the slow query
+        os.kill(pid, signal.SIGKILL)
+    thread.join(10)
+    assert result.get("code") == "internal"
+    lines = segments_with([3.0, 3.0, 2.0, 2.0])
+    assert np.allclose(client.localize_segments(lines, CAMERA).cam_from_world, expected_pose(lines))
+    assert service.pool.alive() == 2 and service.pool.restarts >= 2
+
+
+def test_client_gone_before_reply_does_not_hurt(service):
+    with Client(service.endpoint, map_name="fake") as gone:
+        with pytest.raises(ServiceError):
+            gone.localize_segments(segments_with([-2.0, 0.5, 1.0, 1.0]), CAMERA, timeout=0.1)
+    time.sleep(0.6)
+    with Client(service.endpoint, map_name="fake") as c:
+        assert c.localize_segments(segments_with([1.0, 1.0, 2.0, 2.0]), CAMERA).success
+    assert service.pool.alive() == 2
+
+
+def test_full_queue_answers_busy():
+    config = fake_config(free_endpoint(), workers=1, queue_size=1)
+    codes = []
+    with Service(config) as svc, Client(svc.config.listen[0], map_name="fake") as c:
+
+        def slow():
+            try:
+                c.localize_segments(segments_with([-2.0, 0.5, 1.0, 1.0]), CAMERA, timeout=5.0)
+                codes.append("ok")
+            except ServiceError as e:
+                codes.append(e.code)
+
+        threads = [threading.Thread(target=slow) for _ in range(4)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join(10)
+    assert sorted(codes) == ["busy", "busy", "ok", "ok"]  # 1 running + 1 queued, the rest refused at once
+
+
+def test_load_several_clients_with_garbage(service):
+    ctx = mp.get_context("spawn")
+    args = [(service.endpoint, "fake", 70, 0.1, seed) for seed in range(3)]
+    with ctx.Pool(3) as pool:
+        results = pool.starmap(run_client, args)
+    counts = {}
+    for r in results:
+        for k, v in r["counts"].items():
+            counts[k] = counts.get(k, 0) + v
+    assert set(counts) <= {"valid_right", "garbage_refused"}, counts
+    assert sum(counts.values()) == 210 and counts["garbage_refused"] > 5
+    assert service.pool.alive() == 2
+
+
+def test_sigterm_drains_in_flight_work():
+    endpoint = free_endpoint()
+    cmd = [sys.executable, "-m", "service", "--map", "none", "--name", "drain", "--engine",
+           "service.fake:load_fake_engine", "--listen", endpoint, "--workers", "1"]  # fmt: skip
+    proc = subprocess.Popen(
+        cmd, cwd=ROOT, stderr=subprocess.PIPE, text=True, env=os.environ | {"PYTHONPATH": str(ROOT)}
+    )
+    try:
+        with Client(endpoint, map_name="drain", wait_s=30.0) as c:
+            for _ in range(100):  # wait until it serves
+                if c.instances("drain", timeout=0.2):
+                    break
+                time.sleep(0.1)
+            result = {}
+            thread = threading.Thread(
+                target=lambda: result.update(
+                    reg=c.localize_segments(segments_with([-2.0, 1.0, 1.0, 1.0]), CAMERA)
+                )
+            )
+            thread.start()
+            time.sleep(0.3)
+            proc.send_signal(signal.SIGTERM)
+            thread.join(10)
+            assert result["reg"].success  # answered although the service was told to stop
+        assert proc.wait(timeout=15) == 0
+    finally:
+        proc.kill()
+    assert '"message": "service stopped"' in proc.stderr.read()
