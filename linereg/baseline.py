@@ -14,7 +14,7 @@ segments imaging one of ``M`` map segments, a sample is all-correct with probabi
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -123,7 +123,7 @@ class _Best:
     cam_from_world: np.ndarray
     matches: np.ndarray
     iterations: int = 0
-    tested: list[tuple[int, np.ndarray]] | None = None
+    tested: list[tuple[int, np.ndarray]] = field(default_factory=list)
 
     @property
     def num_inliers(self) -> int:
@@ -161,7 +161,7 @@ def register_ransac6(
     result.runner_up_inliers = max(
         [
             n
-            for n, R in best.tested or []
+            for n, R in best.tested
             if rotation_error_deg(R, result.cam_from_world[:3, :3]) > _RUNNER_UP_ANGLE_DEG
         ],
         default=0,
@@ -180,7 +180,7 @@ def _ransac(lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: Re
     rng = np.random.default_rng(cfg.seed)
     rays1 = pixels_to_rays(camera, lines2d[:, 0:2])
     rays2 = pixels_to_rays(camera, lines2d[:, 2:4])
-    best = _Best(np.eye(4), np.zeros((0, 2), dtype=np.int64), tested=[])
+    best = _Best(np.eye(4), np.zeros((0, 2), dtype=np.int64))
     stop = cfg.stop_inlier_fraction * len(lines2d)
     for start in range(0, cfg.max_iterations, _BATCH):
         size = min(_BATCH, cfg.max_iterations - start)
@@ -197,7 +197,7 @@ def _ransac(lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: Re
             if len(matches) > best.num_inliers:
                 best.cam_from_world, best.matches = cam_from_world, matches
                 if best.num_inliers >= stop:
-                    best.iterations = start + b + 1
+                    best.iterations = start + int(b) + 1
                     return best
     log.debug("ransac6: %d iterations, %d inliers", best.iterations, best.num_inliers)
     return best

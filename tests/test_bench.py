@@ -37,6 +37,14 @@ def test_cell_stats_known_answers():
     assert none["success_rate"] == 0.0 and math.isnan(none["rotation_deg_median"])
 
 
+def test_failure_reasons_counts_most_frequent_first():
+    trials = [record(), record(rot=30.0)] + [
+        report.trial_record("vp", i, False, None, 0.0, 0, "no VD") for i in range(2)
+    ]
+    assert report.failure_reasons(trials) == {"no VD": 2, "pose off": 1}
+    assert report.failure_reasons([record()]) == {}
+
+
 def test_format_table_aligns_and_shows_nan_as_dash():
     text = report.format_table(
         [{"a": 1.234, "b": math.nan}, {"a": 10.0, "b": "x"}], [("a", "A", ".1f"), ("b", "B", "")]

@@ -14,7 +14,7 @@ import os
 import sys
 import tempfile
 import time
-from collections.abc import Iterable, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -77,6 +77,17 @@ def cell_stats(trials: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "time_ms_median": _median(ms),
         "time_ms_p95": float(np.percentile(ms, 95)) if len(ms) else math.nan,
     }
+
+
+def failure_reasons(trials: Sequence[dict[str, Any]], top: int = 3) -> dict[str, int]:
+    """Returns the ``top`` most frequent reasons of trials that were not successful, with their counts.
+
+    A pose reported but outside the success criterion counts as "pose off" (it has no reason of its own).
+    """
+    reasons = [t["reason"] or "pose off" for t in trials if not t["success"]]
+    values, counts = np.unique(reasons, return_counts=True) if reasons else ([], [])
+    order = np.argsort(-np.asarray(counts), kind="stable")[:top]
+    return {str(values[i]): int(counts[i]) for i in order}
 
 
 def _median(a: np.ndarray) -> float:
@@ -142,7 +153,7 @@ def write_json_atomic(path: str | Path, obj: Any) -> Path:
 
 def plot_series(
     path: str | Path,
-    series: dict[str, tuple[Sequence[float], Sequence[float]]],
+    series: Mapping[str, tuple[Sequence[float], Sequence[float]]],
     xlabel: str,
     ylabel: str,
     title: str = "",

@@ -37,12 +37,12 @@ METHODS = ("vp", "ransac6", "oracle")
 NOISE_PX = 2.0  # paper: sigma = 2 px on the 2D endpoints
 DEFAULT_OUTLIERS = 0.3
 DEFAULT_LINES = 100
-FULL = {
+FULL: dict[str, tuple[float, ...]] = {
     "lines": (20, 50, 100, 200),
     "outliers3d": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),
     "outliers2d": (0.0, 0.2, 0.4, 0.6),
 }
-QUICK = {"lines": (20, 50), "outliers3d": (0.0, 0.6), "outliers2d": (0.0, 0.6)}
+QUICK: dict[str, tuple[float, ...]] = {"lines": (20, 50), "outliers3d": (0.0, 0.6), "outliers2d": (0.0, 0.6)}
 QUICK_LINES = 50  # --quick runs the outlier sweeps on smaller scenes too
 QUICK_TRIALS = 3
 QUICK_RANSAC6_ITERATIONS = 200
@@ -79,11 +79,11 @@ class Options:
 def cells(quick: bool) -> list[Cell]:
     """Returns the cells of every sweep, in table order."""
     grid, lines = (QUICK, QUICK_LINES) if quick else (FULL, DEFAULT_LINES)
-    out = [Cell("lines", n, n) for n in grid["lines"]]
+    out = [Cell("lines", n, int(n)) for n in grid["lines"]]
     out += [Cell("outliers3d", f, lines, outlier3d=f) for f in grid["outliers3d"]]
     out += [Cell("outliers2d", f, lines, outlier2d=f) for f in grid["outliers2d"]]
     if hasattr(synthetic, "building_scene"):
-        out.append(Cell("building", 0.0))
+        out.append(Cell("building", 0.0, num_lines=0, outlier3d=0.0, outlier2d=0.0))  # fields unused
     return out
 
 
@@ -146,7 +146,7 @@ def run_synthetic(options: Options, progress: report.Progress | None = None) -> 
         records = run_cell(cell, options, progress)
         for method, trials in report.by_key(records, "method").items():
             row = dataclasses.asdict(cell) | {"method": method} | report.cell_stats(trials)
-            rows.append(row | {"trials": trials})
+            rows.append(row | {"failure_reasons": report.failure_reasons(trials), "trials": trials})
         if progress is not None:
             progress.note(_cell_line(cell, rows[-len(options.methods) :]))
     return {
