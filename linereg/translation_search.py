@@ -1,0 +1,109 @@
+"""Translation by voting of single-pair hypotheses ("search", the default of ``estimate_translation``).
+
+With R fixed, a compatible pair (2D segment i, 3D segment j) whose 2D segment images the whole 3D segment
+fixes t on its own: the endpoint rays ``r1, r2`` and the rotated endpoints ``R P1, R P2`` satisfy
+``l1 r1 - R P1 = l2 r2 - R P2 = t`` (eq. "coplanar" at both endpoints, plus the segment's extent), two
+unknown depths from three equations, exactly solvable because the direction already agrees. Every pair
+gives one hypothesis; the true t collects the hypotheses of all fully seen inliers, wrong pairs scatter.
+Hypotheses vote for camera centres in a grid whose cells are a fraction of the typical depth (a pair's
+error is a fraction of its depth), on two grids shifted by half a cell; the fullest cells' mean
+translations are counted with the inlier test. A 2D segment that is a fragment or that touches the image
+border gives a wrong or no hypothesis; it still counts as an inlier when the hypotheses are tested.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .camera import Camera
+from .config import MatchConfig, TranslationConfig
+from .geometry import pixels_to_rays, segment_lengths
+from .translation import Pairs, pair_inliers
+
+_BORDER_PX = 2.0  # a 2D endpoint this close to the image border may be clipped: no hypothesis from it
+_KEY_BITS = 20  # grid coordinates are packed into one int64 key, 20 bits each
+
+
+def search_candidates(
+    lines2d: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    R: np.ndarray,
+    pairs: Pairs,
+    config: TranslationConfig,
+    match: MatchConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((H, 3) translations, (H,) inlier counts) of the best voted hypotheses (may be empty)."""
+    T, depth = pair_hypotheses(lines2d, lines3d, camera, R, pairs, config.seed_min_length_px)
+    if len(T) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
+    cell = config.cell_fraction * float(np.median(depth))
+    T = vote_cells(T, R, cell, config.num_verify)
+    return T, pair_inliers(lines2d, lines3d, camera, R, pairs, T, match).astype(float)
+
+
+def pair_hypotheses(
+    lines2d: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    R: np.ndarray,
+    pairs: Pairs,
+    min_length_px: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((H, 3) t, (H,) mean endpoint depth) of the pairs read as whole-segment correspondences.
+
+    Solves ``a r2 - b r1 = R (P2 - P1)`` in least squares: ``a, b > 0`` matches P1 to r1 and P2 to r2,
+    both negative the swapped order; mixed signs (a segment behind the camera) give no hypothesis.
+    """
+    e = lines2d[pairs.i]
+    lo, hi = _BORDER_PX, np.array([camera.width, camera.height]) - 1.0 - _BORDER_PX
+    inside = np.all((e[:, 0:2] > lo) & (e[:, 0:2] < hi) & (e[:, 2:4] > lo) & (e[:, 2:4] < hi), axis=1)
+    keep = np.flatnonzero(inside & (segment_lengths(e) >= min_length_px))
+    i, j = pairs.i[keep], pairs.j[keep]
+    r1 = pixels_to_rays(camera, lines2d[i, 0:2])
+    r2 = pixels_to_rays(camera, lines2d[i, 2:4])
+    P1, P2 = lines3d[j, 0:3] @ R.T, lines3d[j, 3:6] @ R.T
+    D = P2 - P1
+    a11 = np.einsum("pk,pk->p", r2, r2)
+    a12 = -np.einsum("pk,pk->p", r2, r1)
+    a22 = np.einsum("pk,pk->p", r1, r1)
+    b1, b2 = np.einsum("pk,pk->p", r2, D), -np.einsum("pk,pk->p", r1, D)
+    det = a11 * a22 - a12 * a12  # > 0 unless the two rays coincide (a point-like segment)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        a = (a22 * b1 - a12 * b2) / det
+        b = (a11 * b2 - a12 * b1) / det
+    forward, backward = (a > 0) & (b > 0), (a < 0) & (b < 0)
+    sign = np.where(forward, 1.0, -1.0)[:, None]
+    near, far = np.where(forward[:, None], P1, P2), np.where(forward[:, None], P2, P1)
+    T = 0.5 * ((sign * b[:, None]) * r1 - near + (sign * a[:, None]) * r2 - far)
+    ok = forward | backward
+    depth = 0.5 * np.abs(a * r2[:, 2] + b * r1[:, 2])
+    return T[ok], depth[ok]
+
+
+def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int) -> np.ndarray:
+    """Returns (K, 3) mean translations of the fullest camera-centre cells, fullest first (K <= top).
+
+    Two grids shifted by half a cell; a cell of the second grid whose mean lies within a cell of an
+    already chosen one is the same hypothesis and is skipped.
+    """
+    centres = -T @ R  # camera centres -R^T t, world frame
+    found, counts = [], []
+    half = 1 << (_KEY_BITS - 1)
+    for shift in (0.0, 0.5):
+        g = np.clip(np.floor(centres / cell + shift), -half + 1, half - 1).astype(np.int64) + half
+        key = (g[:, 0] << (2 * _KEY_BITS)) | (g[:, 1] << _KEY_BITS) | g[:, 2]
+        _, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
+        best = np.argsort(-count, kind="stable")[:top]
+        sums = np.stack([np.bincount(inverse, weights=T[:, k], minlength=len(count)) for k in range(3)], 1)
+        found.append(sums[best] / count[best, None])
+        counts.append(count[best])
+    T_all, c_all = np.concatenate(found), np.concatenate(counts)
+    order = np.argsort(-c_all, kind="stable")
+    chosen: list[np.ndarray] = []
+    for k in order:
+        if all(np.linalg.norm((T_all[k] - t) @ R) > cell for t in chosen):
+            chosen.append(T_all[k])
+        if len(chosen) == top:
+            break
+    return np.array(chosen)
