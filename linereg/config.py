@@ -69,7 +69,16 @@ class TranslationConfig:
     method: Literal["search", "ransac"] = "search"  # "ransac": the paper's random 3-pair RANSAC
     ransac_iterations: int = 2000
     stop_inlier_fraction: float = 0.7  # paper: stop at 70 % inliers
-    coplanar_angle_deg: float = 2.0  # pair candidates: 3D direction within this of the 2D plane
+    # a pair (2D i, 3D j) is a candidate when i's endpoints lie within this of the image line through i's
+    # midpoint and the vanishing point of j's direction under R (pixels: fair to short, noisy segments)
+    coplanar_px: float = 6.0
+    # "search": a pair read as a whole-segment correspondence gives one t; those vote in camera-centre cells
+    # of this fraction of the median depth (a pair's error grows with depth, ~3 % for 100 px at 2 px noise)
+    cell_fraction: float = 0.04
+    seed_min_length_px: float = 20.0  # "search": shorter 2D segments give too vague a hypothesis
+    num_verify: int = 12  # "search": fullest cells scored with the inlier test
+    polish_rounds: int = 2  # least squares on the coplanarity equations + re-match, both methods
+    distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
     seed: int = 0
 
 
