@@ -11,7 +11,6 @@ import numpy as np
 
 from .camera import Camera
 from .config import MatchConfig
-from .geometry import line_coefficients, segment_directions, segment_lengths
 
 
 def project_segments(
@@ -41,17 +40,29 @@ def project_segments(
     return seg, visible
 
 
+def _lines(lines2d: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ((N, 3) normalized line coefficients, (N, 2) unit directions, (N,) lengths, (N,) offsets).
+
+    Same as ``geometry.line_coefficients`` / ``segment_directions`` / ``segment_lengths`` in one pass.
+    """
+    d = lines2d[:, 2:4] - lines2d[:, 0:2]
+    length = np.hypot(d[:, 0], d[:, 1])
+    inv = 1.0 / np.maximum(length, 1e-300)
+    u = d * inv[:, None]
+    # (x1, y1, 1) x (x2, y2, 1) = (y1 - y2, x2 - x1, x1 y2 - x2 y1), scaled to A^2 + B^2 = 1
+    H = np.c_[-u[:, 1], u[:, 0], (lines2d[:, 0] * lines2d[:, 3] - lines2d[:, 2] * lines2d[:, 1]) * inv]
+    offset = u[:, 0] * lines2d[:, 0] + u[:, 1] * lines2d[:, 1]
+    return H, u, length, offset
+
+
 def match_matrix(
     lines2d: np.ndarray, projected: np.ndarray, config: MatchConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((N, M) bool inlier, (N, M) float64 mean endpoint distance px) of 2D vs projected segments."""
-    H = line_coefficients(lines2d)  # (N, 3), A^2 + B^2 = 1
+    H, u, length, offset = _lines(lines2d)
     d1 = np.abs(H[:, :2] @ projected[:, 0:2].T + H[:, 2:3])
     d2 = np.abs(H[:, :2] @ projected[:, 2:4].T + H[:, 2:3])
     close = (d1 <= config.distance_px) & (d2 <= config.distance_px)
-    u = segment_directions(lines2d)  # (N, 2)
-    length = segment_lengths(lines2d)
-    offset = np.einsum("nk,nk->n", u, lines2d[:, 0:2])
     s1 = u @ projected[:, 0:2].T - offset[:, None]  # position of each projected endpoint along the 2D segment
     s2 = u @ projected[:, 2:4].T - offset[:, None]
     lo = np.maximum(np.minimum(s1, s2), 0.0)
@@ -70,13 +81,23 @@ def match_segments(
     """Returns (K, 2) int64 ``(i2d, j3d)``: for each 2D segment its closest inlier 3D segment, if any.
 
     lines2d: (N, 4) undistorted pixels; lines3d: (M, 6) world; several 2D fragments may share a 3D segment.
+    Same result as ``match_matrix`` + argmin of the mean distance (ties: lowest j), but the overlap is
+    only evaluated on the few pairs that pass the distance test.
     """
     if len(lines2d) == 0 or len(lines3d) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     projected, visible = project_segments(lines3d, camera, cam_from_world, config.min_depth_m)
-    inlier, dist = match_matrix(lines2d, projected, config)
-    inlier &= visible[None, :]
-    dist = np.where(inlier, dist, np.inf)
-    best = np.argmin(dist, axis=1)
-    rows = np.flatnonzero(np.isfinite(dist[np.arange(len(lines2d)), best]))
-    return np.c_[rows, best[rows]].astype(np.int64)
+    H, u, length, offset = _lines(lines2d)
+    d1 = np.abs(H[:, :2] @ projected[:, 0:2].T + H[:, 2:3])
+    d2 = np.abs(H[:, :2] @ projected[:, 2:4].T + H[:, 2:3])
+    i, j = np.nonzero((d1 <= config.distance_px) & (d2 <= config.distance_px) & visible[None, :])
+    s1 = np.einsum("pk,pk->p", u[i], projected[j, 0:2]) - offset[i]
+    s2 = np.einsum("pk,pk->p", u[i], projected[j, 2:4]) - offset[i]
+    lo = np.maximum(np.minimum(s1, s2), 0.0)
+    hi = np.minimum(np.maximum(s1, s2), length[i])
+    keep = (hi - lo) / length[i] > config.min_overlap
+    i, j = i[keep], j[keep]
+    dist = 0.5 * (d1[i, j] + d2[i, j])
+    order = np.lexsort((j, dist, i))  # by 2D segment, then distance, then lowest 3D index
+    first = order[np.r_[True, i[order][1:] != i[order][:-1]]] if len(order) else order
+    return np.c_[i[first], j[first]].astype(np.int64).reshape(-1, 2)
