@@ -1,9 +1,11 @@
-"""``linereg bench synthetic``: the paper's Monte-Carlo experiments (section IV-A, Figs. 5 and 6).
+"""The paper's Monte-Carlo experiments (section IV-A): ours vs RANSAC-6 vs the known-match oracle.
+
+``linereg bench synthetic [--quick] [--trials 50] [--out DIR] [--methods vp,ransac6,oracle]``.
 
 Sweeps (2 px endpoint noise throughout):
-- ``lines``: 20, 50, 100, 200 map lines at 30 % 3D and 30 % 2D outliers (Fig. 5: success, runtime, errors);
-- ``outliers3d``: 3D outlier fraction 0 .. 0.6 at 100 lines, 30 % 2D outliers (Fig. 6a);
-- ``outliers2d``: 2D outlier fraction 0, 0.2, 0.4, 0.6 at 100 lines, 30 % 3D outliers (Fig. 6b);
+- ``lines``: 20, 50, 100, 200 map lines at 30 % 3D and 30 % 2D outliers (paper fig. analysis);
+- ``outliers3d``: 3D outlier fraction 0 .. 0.6 at 100 lines, 30 % 2D outliers (paper fig. outlier a);
+- ``outliers2d``: 2D outlier fraction 0, 0.2, 0.4, 0.6 at 100 lines, 30 % 3D outliers (paper fig. outlier b);
 - ``building``: ``synthetic.building_scene`` with its defaults, when that generator exists.
 
 Methods: ``vp`` (``linereg.register``, ours), ``ransac6`` (``register`` with ``method="ransac6"``, the
