@@ -194,12 +194,10 @@ def wire_prior(prior) -> protocols.Prior | None:
     """Returns the wire Prior of a library or wire prior (same field names), or None."""
     if prior is None:
         return None
-    if getattr(prior, "position", None) is not None:
+    if getattr(prior, "cam_from_world", None) is not None:  # a pose prior (its position is derived from it)
         return protocols.Prior(
-            position=np.asarray(prior.position, dtype=np.float64), radius_m=float(prior.radius_m)
+            cam_from_world=np.asarray(prior.cam_from_world, dtype=np.float64),
+            sigma_rot_deg=float(prior.sigma_rot_deg),
+            sigma_pos_m=float(prior.sigma_pos_m),
         )
-    return protocols.Prior(
-        cam_from_world=np.asarray(prior.cam_from_world, dtype=np.float64),
-        sigma_rot_deg=float(prior.sigma_rot_deg),
-        sigma_pos_m=float(prior.sigma_pos_m),
-    )
+    return protocols.Prior(position=np.asarray(prior.position, dtype=np.float64), radius_m=float(prior.radius_m))

@@ -188,3 +188,34 @@ def test_sigterm_drains_in_flight_work():
     finally:
         proc.kill()
     assert '"message": "service stopped"' in proc.stderr.read()
+
+
+def test_query_cli_prints_one_json_per_image(service, tmp_path, capsys):
+    import json
+
+    import cv2
+
+    from linereg.cli import main
+
+    image = np.random.default_rng(5).integers(0, 256, size=(240, 320), dtype=np.uint8)
+    cv2.imwrite(str(tmp_path / "a.png"), image)
+    (tmp_path / "bad.png").write_bytes(b"not an image")
+    (tmp_path / "cam.json").write_text(json.dumps(CAMERA.to_dict()))
+    args = [
+        "query",
+        "--connect",
+        service.endpoint,
+        "--camera",
+        str(tmp_path / "cam.json"),
+        str(tmp_path / "a.png"),
+    ]
+    assert main(args) == 0
+    record = json.loads(capsys.readouterr().out.splitlines()[0])
+    assert record["success"] and np.allclose(record["cam_from_world"], expected_pose(image))
+    assert main([*args[:-1], str(tmp_path / "bad.png")]) == 2  # not a PNG: a user error, no traceback
+
+
+def test_linereg_package_never_imports_zenoh():
+    code = "import sys, linereg, linereg.cli; linereg.cli.build_parser(); print('zenoh' in sys.modules)"
+    out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "False"
