@@ -1,3 +1,4 @@
+import argparse
 import io
 import json
 import math
@@ -7,6 +8,7 @@ import pytest
 
 from linereg.bench import report, synthetic
 from linereg.cli import main
+from linereg.errors import InvalidInputError
 
 
 def record(success=True, rot=1.0, rel=0.01, ms=10.0, method="vp"):
@@ -93,7 +95,7 @@ def test_bench_synthetic_quick_end_to_end(tmp_path, capsys):
     assert len(rows) == 3 * len(synthetic.cells(quick=True))
     assert all(r["n"] == 1 and len(r["trials"]) == 1 for r in rows)
     assert all(r["success_rate"] == 1.0 for r in rows if r["method"] == "oracle")
-    assert results["ransac6"]["max_iterations"] == 20
+    assert results["config"]["ransac6"]["max_iterations"] == 20
     pngs = sorted(p.name for p in out.glob("*.png"))
     assert pngs == sorted(
         [
@@ -111,3 +113,15 @@ def test_bench_synthetic_quick_end_to_end(tmp_path, capsys):
 def test_bench_synthetic_rejects_unknown_method(tmp_path, capsys):
     assert main(["bench", "synthetic", "--methods", "vp,magic", "--out", str(tmp_path)]) == 2
     assert "magic" in capsys.readouterr().err
+
+
+def test_bench_synthetic_reads_a_config_file(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text('{"match": {"distance_px": 4.0}, "ransac6": {"max_iterations": 7}}')
+    parser = argparse.ArgumentParser()
+    synthetic.configure(parser)
+    options = synthetic.options_from_args(parser.parse_args(["--config", str(path)]))
+    assert options.config.match.distance_px == 4.0 and options.config.ransac6.max_iterations == 7
+    path.write_text('{"match": {"nope": 1}}')
+    with pytest.raises(InvalidInputError, match="nope"):
+        synthetic.options_from_args(parser.parse_args(["--config", str(path)]))

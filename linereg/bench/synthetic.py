@@ -154,8 +154,8 @@ def run_synthetic(options: Options, progress: report.Progress | None = None) -> 
     return {
         "benchmark": "synthetic",
         "options": {k: v for k, v in dataclasses.asdict(options).items() if k != "config"},
+        "config": dataclasses.asdict(options.config),
         "noise_px": NOISE_PX,
-        "ransac6": dataclasses.asdict(options.config.ransac6),
         "success_criterion": {
             "rotation_rad": report.SUCCESS_ROTATION_RAD,
             "rel_translation": report.SUCCESS_REL_TRANSLATION,
@@ -262,6 +262,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help=f"ransac6 iteration cap (default {Ransac6Config.max_iterations}, quick {QUICK_RANSAC6_ITERATIONS})",
     )
+    parser.add_argument("--config", type=Path, help="JSON overrides of RegisterConfig, per section")
     parser.set_defaults(func=run)
 
 
@@ -278,11 +279,26 @@ def options_from_args(args: argparse.Namespace) -> Options:
     trials = args.trials if args.trials is not None else (QUICK_TRIALS if args.quick else 50)
     if trials < 1:
         raise InvalidInputError(f"--trials must be >= 1, got {trials}")
+    config = _read_config(args.config) if args.config else RegisterConfig()
     iterations = args.ransac6_iterations or (
-        QUICK_RANSAC6_ITERATIONS if args.quick else Ransac6Config.max_iterations
+        QUICK_RANSAC6_ITERATIONS if args.quick else config.ransac6.max_iterations
     )
-    config = RegisterConfig(ransac6=Ransac6Config(max_iterations=iterations))
+    config = dataclasses.replace(
+        config, ransac6=dataclasses.replace(config.ransac6, max_iterations=iterations)
+    )
     return Options(quick=args.quick, trials=trials, methods=methods, seed=args.seed, config=config)
+
+
+def _read_config(path: Path) -> RegisterConfig:
+    """Returns the RegisterConfig of a JSON file of nested section overrides (``{"match": {...}}``)."""
+    import json
+
+    from ..errors import FileFormatError
+
+    try:
+        return RegisterConfig.from_dict(json.loads(Path(path).read_text()))
+    except (OSError, json.JSONDecodeError) as e:
+        raise FileFormatError(f"--config {path}: {e}") from None
 
 
 def run(args: argparse.Namespace) -> int:
