@@ -37,19 +37,22 @@ class ServiceError(LineregError):
 class Client:
     """A zenoh session to a linereg service; ``map_name`` None = the only map being served.
 
-    ``balance``: send each request to one live instance's own key in turn (replicas); ``wait_s``: keep
+    ``connect``: router endpoint(s), default the config file's or tcp/127.0.0.1:7447; ``config_file``: a
+    zenoh json5 file (TLS, credentials); ``balance``: send each request to one live instance's own key in turn (replicas); ``wait_s``: keep
     trying to connect this long (a router that is starting).
     """
 
     def __init__(
         self,
-        connect: str | Sequence[str] = DEFAULT_ENDPOINT,
+        connect: str | Sequence[str] | None = None,
         map_name: str | None = None,
         config_file: str | None = None,
-        mode: str = "client",
+        mode: str | None = "client",
         balance: bool = False,
         wait_s: float = 0.0,
     ) -> None:
+        if connect is None:  # the config file's endpoints, else the default local router
+            connect = () if config_file else DEFAULT_ENDPOINT
         endpoints = [connect] if isinstance(connect, str) else list(connect)
         self.session = _open_retrying(
             session_config(mode, connect=endpoints, config_file=config_file), wait_s
@@ -200,4 +203,6 @@ def wire_prior(prior) -> protocols.Prior | None:
             sigma_rot_deg=float(prior.sigma_rot_deg),
             sigma_pos_m=float(prior.sigma_pos_m),
         )
-    return protocols.Prior(position=np.asarray(prior.position, dtype=np.float64), radius_m=float(prior.radius_m))
+    return protocols.Prior(
+        position=np.asarray(prior.position, dtype=np.float64), radius_m=float(prior.radius_m)
+    )

@@ -33,7 +33,7 @@ class ServiceConfig:
     instance: str | None = None  # default: a short random id
     workers: int = 2
     queue_size: int = 8
-    mode: str = "router"
+    mode: str | None = "router"  # None: the zenoh config file's
     listen: tuple[str, ...] = (DEFAULT_ENDPOINT,)
     connect: tuple[str, ...] = ()
     zenoh_config: str | None = None  # a json5 file; mode/endpoints above override its values

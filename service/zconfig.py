@@ -11,7 +11,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 
 
 def session_config(
-    mode: str,
+    mode: str | None,
     listen: Sequence[str] = (),
     connect: Sequence[str] = (),
     config_file: str | None = None,
@@ -19,10 +19,13 @@ def session_config(
 ) -> zenoh.Config:
     """Returns a zenoh Config: ``config_file`` (json5) if given, then mode/endpoints/scouting on top.
 
+    ``mode`` None keeps the file's mode; empty endpoint lists keep the file's endpoints.
+
     Multicast scouting is off unless asked for: on loopback and in tests, discovery is by endpoint.
     """
     conf = zenoh.Config.from_file(config_file) if config_file else zenoh.Config()
-    conf.insert_json5("mode", json.dumps(mode))
+    if mode is not None:
+        conf.insert_json5("mode", json.dumps(mode))
     if listen:
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
     if connect:

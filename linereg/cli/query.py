@@ -50,11 +50,10 @@ def read_camera(path: Path) -> Camera:
 
 def run(args: argparse.Namespace) -> int:
     from service.client import Client, ServiceError
-    from service.zconfig import DEFAULT_ENDPOINT
 
     camera = read_camera(args.camera)
     failures = 0
-    with Client(args.connect or DEFAULT_ENDPOINT, map_name=args.map, config_file=args.zenoh_config) as client:
+    with Client(args.connect, map_name=args.map, config_file=args.zenoh_config) as client:
         for path in args.images:
             try:
                 reg = client.localize(path, camera, timeout=args.timeout, return_matches=args.matches)

@@ -14,7 +14,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--queue", type=int, default=8, help="requests waiting beyond the workers before 'busy'"
     )
-    parser.add_argument("--mode", default="router", choices=("router", "peer", "client"), help="zenoh mode")
+    parser.add_argument(
+        "--mode",
+        choices=("router", "peer", "client"),
+        help="zenoh mode (default: the config file's, else router)",
+    )
     parser.add_argument(
         "--listen", action="append", help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)"
     )
@@ -41,10 +45,12 @@ def config_from_args(args: argparse.Namespace):
     limits = Limits(
         max_payload_bytes=int(args.max_payload_mb * 1024 * 1024), default_deadline_ms=args.deadline_ms
     )
-    listen = tuple(args.listen) if args.listen else (() if args.mode == "client" else (DEFAULT_ENDPOINT,))
+    mode = args.mode or (None if args.zenoh_config else "router")
+    default_listen = () if args.zenoh_config or mode == "client" else (DEFAULT_ENDPOINT,)
+    listen = tuple(args.listen) if args.listen else default_listen
     return ServiceConfig(
         loader=args.engine, loader_args=(args.map, args.name), map_name=args.name,
-        instance=args.instance, workers=args.workers, queue_size=args.queue, mode=args.mode, listen=listen,
+        instance=args.instance, workers=args.workers, queue_size=args.queue, mode=mode, listen=listen,
         connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
     )  # fmt: skip
 
