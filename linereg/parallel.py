@@ -37,17 +37,21 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
     left = usable.copy()  # not yet in a cluster
     # one (H, S) work buffer for all rounds: fresh large temporaries cost more in page faults than the math
     work = np.empty(config.ransac_iterations * min(len(d), _SCORE_SAMPLE), dtype=np.float32)
-    found = []
+    found, labels = [], np.full(len(d), -1, dtype=np.int64)
     for _ in range(config.num_clusters):
         if np.count_nonzero(left) < max(config.min_lines, 1):
             break
         members = _best_cluster(d, lengths, left, cos_thr, config.ransac_iterations, rng, work)
         if np.count_nonzero(members) < config.min_lines:
             break
+        labels[members] = len(found)
         found.append(principal_direction(d[members], lengths[members], largest=True))
         left &= ~members
-    directions = merge_directions(np.array(found).reshape(-1, 3), config.merge_angle_deg)
-    labels = _assign(d, directions, cos_thr, usable)  # re-assign to the merged directions and re-fit them
+    labels, directions = merge_clusters(np.array(found).reshape(-1, 3), labels, config.merge_angle_deg)
+    directions = refit_directions(d, lengths, labels, directions, largest=True)
+    # segments left out by RANSAC join a merged direction they pass; merged members stay
+    assigned = _assign(d, directions, cos_thr, usable)
+    labels = np.where(assigned >= 0, assigned, labels)
     directions = refit_directions(d, lengths, labels, directions, largest=True)
     return sort_clusters(directions, labels, lengths, config.min_lines, config.top_k)
 
@@ -142,15 +146,24 @@ def refit_directions(
     return out
 
 
-def merge_directions(directions: np.ndarray, merge_angle_deg: float) -> np.ndarray:
-    """Returns the (K', 3) directions left after dropping any within ``merge_angle_deg`` (sign-free) of an
-    earlier (stronger) one; its segments join the earlier one at re-assignment."""
-    kept: list[np.ndarray] = []
+def merge_clusters(
+    directions: np.ndarray, labels: np.ndarray, merge_angle_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((N,) labels, (G, 3) directions) after joining each cluster whose direction lies within
+    ``merge_angle_deg`` (sign-free) of an earlier (stronger) one to it (paper: merge adjacent directions).
+
+    directions: (K, 3) in the order found; labels: (N,) int64 in [-1, K).
+    """
     cos_merge = np.cos(np.radians(merge_angle_deg))
-    for v in directions:
-        if all(abs(float(v @ k)) < cos_merge for k in kept):
-            kept.append(v)
-    return np.array(kept).reshape(-1, 3)
+    group = np.empty(len(directions) + 1, dtype=np.int64)
+    group[-1] = -1  # unassigned segments stay unassigned
+    kept: list[int] = []
+    for k, v in enumerate(directions):
+        near = [g for g, r in enumerate(kept) if abs(float(v @ directions[r])) >= cos_merge]
+        group[k] = near[0] if near else len(kept)
+        if not near:
+            kept.append(k)
+    return group[labels], directions[kept].reshape(-1, 3)
 
 
 def canonical_sign(directions: np.ndarray) -> np.ndarray:

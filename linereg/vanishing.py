@@ -21,7 +21,7 @@ from .directions import DirectionClusters
 from .geometry import interpretation_normals, segment_directions, segment_lengths
 from .parallel import (
     as_segments,
-    merge_directions,
+    merge_clusters,
     principal_direction,
     refit_directions,
     sample_weighted,
@@ -57,20 +57,24 @@ def vanishing_directions(
     left = usable.copy()  # not yet in a cluster
     # one work buffer for all rounds: fresh (H, N) temporaries cost more in page faults than the math
     work = np.empty(2 * config.ransac_iterations * len(lines2d))
-    found = []
+    found, found_labels = [], np.full(len(lines2d), -1, dtype=np.int64)
     for _ in range(config.num_clusters):
         if np.count_nonzero(left) < max(config.min_lines, 2):
             break
         v, members = _best_vd(normals, lengths, left, test, camera.K, config, rng, work)
         if np.count_nonzero(members) < config.min_lines:
             break
+        found_labels[members] = len(found)
         found.append(v)
         left &= ~members
-    directions = merge_directions(np.array(found).reshape(-1, 3), config.merge_angle_deg)
-    labels = np.full(len(lines2d), -1, dtype=np.int64)
-    for _ in range(2):  # re-assign to the merged directions, re-fit them on their final members
-        labels = _assign(test, camera.K, directions, usable)
+    merged, directions = merge_clusters(np.array(found).reshape(-1, 3), found_labels, config.merge_angle_deg)
+    labels = merged
+    for _ in range(2):  # re-fit, then re-assign: a segment goes to the VD it fits best (short ones pass
+        # several; the first RANSAC round took them), else stays in its merged cluster
         directions = refit_directions(normals, lengths**2, labels, directions, largest=False)
+        assigned = _assign(test, camera.K, directions, usable)
+        labels = np.where(assigned >= 0, assigned, merged)
+    directions = refit_directions(normals, lengths**2, labels, directions, largest=False)
     return sort_clusters(directions, labels, lengths, config.min_lines, config.top_k)
 
 
@@ -100,7 +104,10 @@ def _best_vd(
     if len(hyp) == 0:
         return np.zeros(3), np.zeros(len(left), dtype=bool)
     score = _ratios(test, K, hyp, work)  # (H, N): every hypothesis against every segment
-    np.less_equal(score, 1.0, out=score)  # 1.0 for an inlier, 0.0 otherwise
+    # MSAC: an inlier adds its length times (1 - ratio), so VDs that segments point at exactly win over
+    # ones that many segments only just pass (typically long outliers near a weak true VD)
+    np.subtract(1.0, score, out=score)
+    np.maximum(score, 0.0, out=score)
     members = (score[np.argmax(score @ (lengths * left))] > 0.0) & left
     for _ in range(2):  # refit on the members, then re-collect them around the refined VD
         v = principal_direction(normals[members], lengths[members] ** 2, largest=False)
