@@ -18,7 +18,7 @@ import numpy as np
 from .camera import Camera
 from .config import MatchConfig, TranslationConfig
 from .directions import DirectionClusters
-from .geometry import interpretation_normals, make_cam_from_world, pixels_to_rays
+from .geometry import make_cam_from_world, pixels_to_rays
 from .matching import match_segments
 
 log = logging.getLogger(__name__)
@@ -45,19 +45,25 @@ class Pairs:
 
     i, j: (P,) int64 2D / 3D indices; group: (P,) int64 direction group of j (its 3D cluster, or
     ``len(clusters) + j`` for an unclustered segment); normal: (P, 3) the interpretation normal of i made
-    to contain j's direction; bearing: (P, 3) unit vector in that plane, orthogonal to the direction,
-    towards i's rays; offset: (P,) ``normal . R P_j`` so eq. "coplanar" reads ``normal . t = -offset``.
-    directions: (G, 3) camera-frame direction of each group; point: (M, 3) ``R P_j`` (segment midpoints).
+    to contain j's direction; offset: (P,) ``normal . R P_j`` so eq. "coplanar" reads
+    ``normal . t = -offset``. directions: (G, 3) camera-frame direction of each group. Per segment, computed
+    once: ends (M, 6) rotated 3D endpoints ``R P1, R P2``; point (M, 3) their midpoints; plane (N, 3) the
+    plain interpretation normals of the 2D segments; per pair, plane_ij (P, 3) = plane[i] and
+    plane_offset (P,) = ``plane[i] . point[j]`` (the midpoint's distance to the plane is
+    ``plane_offset + plane_ij . t``).
     """
 
     i: np.ndarray
     j: np.ndarray
     group: np.ndarray
     normal: np.ndarray
-    bearing: np.ndarray
     offset: np.ndarray
     directions: np.ndarray
+    ends: np.ndarray
     point: np.ndarray
+    plane: np.ndarray
+    plane_ij: np.ndarray
+    plane_offset: np.ndarray
 
 
 def estimate_translation(
@@ -86,7 +92,7 @@ def estimate_translation(
         from .translation_search import search_candidates
 
         candidates = search_candidates(lines2d, lines3d, camera, R, pairs, config, match)
-    return finish(lines2d, lines3d, camera, R, candidates, config, match)
+    return finish(lines2d, lines3d, camera, R, pairs, candidates, config, match)
 
 
 def _empty() -> TranslationHypothesis:
@@ -119,22 +125,31 @@ def compatible_pairs(
     group_of_j = np.where(labels >= 0, labels, 0)
     group_of_j[loose] = K + np.arange(len(loose))
     compat = _vanishing_compatible(lines2d, camera, dirs, tolerance_px)  # (N, G)
-    # expand (i, group) into (i, j) with every member j of the group
+    # expand each compatible (i, group) into (i, j) for every member j of the group
     order = np.argsort(group_of_j, kind="stable")
     starts = np.searchsorted(group_of_j[order], np.arange(len(dirs) + 1))
     ii, gg = np.nonzero(compat)
     counts = starts[gg + 1] - starts[gg]
-    i = np.repeat(ii, counts)
-    g = np.repeat(gg, counts)
-    first = np.repeat(starts[gg] - np.cumsum(counts) + counts, counts)
-    j = order[np.arange(len(i)) + first]
-    point = 0.5 * (lines3d[:, 0:3] + lines3d[:, 3:6]) @ R.T
+    i, g = np.repeat(ii, counts), np.repeat(gg, counts)
+    j = order[np.arange(len(i)) + np.repeat(starts[gg] - np.cumsum(counts) + counts, counts)]
+    ends = (lines3d.reshape(-1, 3) @ R.T).reshape(-1, 6)
+    point = 0.5 * (ends[:, 0:3] + ends[:, 3:6])
     mid = pixels_to_rays(camera, 0.5 * (lines2d[:, 0:2] + lines2d[:, 2:4]))
-    ray, a = mid[i], dirs[g]
-    normal = _unit(np.cross(ray, a))
-    bearing = _unit(ray - np.einsum("pk,pk->p", ray, a)[:, None] * a)
+    normal = np.repeat(_unit(cross(mid[ii], dirs[gg])), counts, axis=0)  # depends on (i, group) only
     offset = np.einsum("pk,pk->p", normal, point[j])
-    return Pairs(i, j, g, normal, bearing, offset, dirs, point)
+    plane = _unit(cross(pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])))
+    plane_ij = plane[i]
+    plane_offset = np.einsum("pk,pk->p", plane_ij, point[j])
+    return Pairs(i, j, g, normal, offset, dirs, ends, point, plane, plane_ij, plane_offset)
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Returns (P, 3) row-wise cross products of (P, 3) arrays (np.cross is several times slower here)."""
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
 
 
 def _vanishing_compatible(
@@ -164,36 +179,40 @@ def scene_size(lines3d: np.ndarray) -> float:
 
 
 def pair_inliers(
-    lines2d: np.ndarray,
-    lines3d: np.ndarray,
-    camera: Camera,
-    R: np.ndarray,
-    pairs: Pairs,
-    T: np.ndarray,
-    match: MatchConfig,
+    lines2d: np.ndarray, camera: Camera, pairs: Pairs, T: np.ndarray, match: MatchConfig
 ) -> np.ndarray:
     """Returns (H,) int64 inlier counts of translations T (H, 3): the shared test, on the pairs only.
 
-    Same test as ``matching.match_matrix`` (endpoint distance and overlap) evaluated only on compatible
-    pairs, counting 2D segments with at least one inlier pair: a fast lower bound of match_segments.
+    Counts 2D segments with at least one inlier pair (``pair_matches``): a fast lower bound of the
+    number of ``match_segments`` rows.
+    """
+    h, i, _ = pair_matches(lines2d, camera, pairs, T, match)
+    ok = np.zeros((len(T), len(lines2d)), dtype=bool)
+    ok[h, i] = True
+    return ok.sum(axis=1)
+
+
+def pair_matches(
+    lines2d: np.ndarray, camera: Camera, pairs: Pairs, T: np.ndarray, match: MatchConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (K,) int64 ``(h, i, j)``: the compatible pairs that pass the inlier test at translation T[h].
+
+    Same test as ``matching.match_matrix`` (endpoint distance and overlap), evaluated only on the pairs.
     A pair whose 3D midpoint is farther from i's interpretation plane than ``distance_px * z / f`` cannot
     pass (both endpoints are within that, and the midpoint is their mean), so only the others are tested.
     """
-    n = interpretation_normals(lines2d, camera)[pairs.i]
-    mid = pairs.point[pairs.j]
-    res = np.einsum("pk,pk->p", n, mid)[None, :] + T @ n.T  # (H, P) midpoint off the plane (m)
-    z = mid[None, :, 2] + T[:, 2:3]
+    res = pairs.plane_offset[None, :] + T @ pairs.plane_ij.T  # (H, P) midpoint off the plane (m)
+    z = pairs.point[pairs.j, 2][None, :] + T[:, 2:3]
     h, p = np.nonzero(np.abs(res) <= (match.distance_px / max(camera.fx, camera.fy)) * z)
     i, j = pairs.i[p], pairs.j[p]
     t = T[h]
-    ends = [lines3d[j, 0:3] @ R.T + t, lines3d[j, 3:6] @ R.T + t]
     seg = lines2d[i]
     d = seg[:, 2:4] - seg[:, 0:2]
     length = np.hypot(d[:, 0], d[:, 1])
     u = d / np.maximum(length, 1e-300)[:, None]
     close = np.ones(len(p), dtype=bool)
     along = []
-    for x in ends:
+    for x in (pairs.ends[j, 0:3] + t, pairs.ends[j, 3:6] + t):
         front = x[:, 2] >= match.min_depth_m
         zs = np.where(front, x[:, 2], 1.0)
         rel_x = camera.fx * x[:, 0] / zs + camera.cx - seg[:, 0]
@@ -202,32 +221,23 @@ def pair_inliers(
         along.append(u[:, 0] * rel_x + u[:, 1] * rel_y)
     lo = np.maximum(np.minimum(along[0], along[1]), 0.0)
     hi = np.minimum(np.maximum(along[0], along[1]), length)
-    inlier = close & (hi - lo > match.min_overlap * length)
-    ok = np.zeros((len(T), len(lines2d)), dtype=bool)
-    ok[h[inlier], i[inlier]] = True
-    return ok.sum(axis=1)
+    keep = close & (hi - lo > match.min_overlap * length)
+    return h[keep], i[keep], j[keep]
 
 
-def refine_translation(
-    lines2d: np.ndarray,
-    lines3d: np.ndarray,
-    camera: Camera,
-    R: np.ndarray,
-    t: np.ndarray,
-    matches: np.ndarray,
-) -> np.ndarray:
+def refine_translation(plane: np.ndarray, ends: np.ndarray, t: np.ndarray, matches: np.ndarray) -> np.ndarray:
     """Returns (3,) t minimising the depth-weighted coplanarity residuals of matches (eq. "coplanar").
 
+    plane: (N, 3) interpretation normals of the 2D segments; ends: (M, 6) rotated 3D endpoints ``R P``.
     Both endpoints of each matched 3D segment must lie on the 2D segment's interpretation plane; dividing
     by depth makes each residual an angle (~ pixels / f). A weak prior on the current t keeps directions
     no match constrains (e.g. along the only cluster's direction) where they were.
     """
     if len(matches) == 0:
         return t
-    n = interpretation_normals(lines2d[matches[:, 0]], camera)
-    P = np.r_[lines3d[matches[:, 1], 0:3], lines3d[matches[:, 1], 3:6]] @ R.T
-    n = np.r_[n, n]
-    depth = np.maximum((P + t)[:, 2], 1e-3)
+    n = np.r_[plane[matches[:, 0]], plane[matches[:, 0]]]
+    P = np.r_[ends[matches[:, 1], 0:3], ends[matches[:, 1], 3:6]]
+    depth = np.maximum(P[:, 2] + t[2], 1e-3)
     A = n / depth[:, None]
     b = -np.einsum("pk,pk->p", n, P) / depth
     prior = 1e-3 / max(float(depth.mean()), 1e-3)
@@ -241,6 +251,7 @@ def finish(
     lines3d: np.ndarray,
     camera: Camera,
     R: np.ndarray,
+    pairs: Pairs,
     candidates: tuple[np.ndarray, np.ndarray],
     config: TranslationConfig,
     match: MatchConfig,
@@ -255,13 +266,13 @@ def finish(
     if len(T) == 0:
         return _empty()
     order = np.argsort(-scores, kind="stable")
-    best_t, best = _polish(lines2d, lines3d, camera, R, T[order[0]], config.polish_rounds, match)
+    best_t, best = _polish(lines2d, lines3d, camera, R, pairs, T[order[0]], config.polish_rounds, match)
     far = config.distinct_fraction * scene_size(lines3d)
     # camera centres are -R^T t, so centre distances equal translation distances
     distinct = order[np.linalg.norm(T[order] - best_t, axis=1) > far]
     if len(distinct) == 0:
         return TranslationHypothesis(best_t, best, len(best), 0)
-    other_t, other = _polish(lines2d, lines3d, camera, R, T[distinct[0]], 1, match)
+    other_t, other = _polish(lines2d, lines3d, camera, R, pairs, T[distinct[0]], 1, match)
     if len(other) > len(best):
         best_t, best, other = other_t, other, best
     log.debug("translation: %d inliers, runner-up %d", len(best), len(other))
@@ -273,17 +284,23 @@ def _polish(
     lines3d: np.ndarray,
     camera: Camera,
     R: np.ndarray,
+    pairs: Pairs,
     t: np.ndarray,
     rounds: int,
     match: MatchConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((3,) t, (K, 2) matches) after alternating least squares and re-matching, keeping the best."""
+    """Returns ((3,) t, (K, 2) matches) after alternating least squares and re-matching, keeping the best.
+
+    The rounds re-match on the compatible pairs (cheap); the result is matched once with match_segments.
+    """
     best_t = np.asarray(t, float)
-    best = match_segments(lines2d, lines3d, camera, make_cam_from_world(R, best_t), match)
+    _, i, j = pair_matches(lines2d, camera, pairs, best_t[None], match)
+    best_count = len(np.unique(i))
     for _ in range(rounds):
-        t_new = refine_translation(lines2d, lines3d, camera, R, best_t, best)
-        m_new = match_segments(lines2d, lines3d, camera, make_cam_from_world(R, t_new), match)
-        if len(m_new) < len(best):
+        t_new = refine_translation(pairs.plane, pairs.ends, best_t, np.c_[i, j])
+        _, i_new, j_new = pair_matches(lines2d, camera, pairs, t_new[None], match)
+        count = len(np.unique(i_new))
+        if count < best_count:
             break
-        best_t, best = t_new, m_new
-    return best_t, best
+        best_t, best_count, i, j = t_new, count, i_new, j_new
+    return best_t, match_segments(lines2d, lines3d, camera, make_cam_from_world(R, best_t), match)

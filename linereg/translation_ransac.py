@@ -40,7 +40,7 @@ def ransac_candidates(
         if not ok.any():
             continue
         T = np.linalg.solve(A[ok], -pairs.offset[pick[ok]][..., None])[..., 0]
-        counts = pair_inliers(lines2d, lines3d, camera, R, pairs, T, match)
+        counts = pair_inliers(lines2d, camera, pairs, T, match)
         found_T.append(T)
         found_n.append(counts)
         if counts.max() >= stop:

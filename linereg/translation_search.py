@@ -37,9 +37,9 @@ def search_candidates(
     T, depth = pair_hypotheses(lines2d, lines3d, camera, R, pairs, config.seed_min_length_px)
     if len(T) == 0:
         return np.zeros((0, 3)), np.zeros(0)
-    cell = config.cell_fraction * float(np.median(depth))
+    cell = config.cell_fraction * float(np.partition(depth, len(depth) // 2)[len(depth) // 2])
     T = vote_cells(T, R, cell, config.num_verify)
-    return T, pair_inliers(lines2d, lines3d, camera, R, pairs, T, match).astype(float)
+    return T, pair_inliers(lines2d, camera, pairs, T, match).astype(float)
 
 
 def pair_hypotheses(
@@ -55,30 +55,29 @@ def pair_hypotheses(
     Solves ``a r2 - b r1 = R (P2 - P1)`` in least squares: ``a, b > 0`` matches P1 to r1 and P2 to r2,
     both negative the swapped order; mixed signs (a segment behind the camera) give no hypothesis.
     """
-    e = lines2d[pairs.i]
     lo, hi = _BORDER_PX, np.array([camera.width, camera.height]) - 1.0 - _BORDER_PX
-    inside = np.all((e[:, 0:2] > lo) & (e[:, 0:2] < hi) & (e[:, 2:4] > lo) & (e[:, 2:4] < hi), axis=1)
-    keep = np.flatnonzero(inside & (segment_lengths(e) >= min_length_px))
+    inside = np.all((lines2d[:, 0:2] > lo) & (lines2d[:, 0:2] < hi), axis=1)
+    inside &= np.all((lines2d[:, 2:4] > lo) & (lines2d[:, 2:4] < hi), axis=1)
+    usable = inside & (segment_lengths(lines2d) >= min_length_px)
+    keep = np.flatnonzero(usable[pairs.i])
     i, j = pairs.i[keep], pairs.j[keep]
-    r1 = pixels_to_rays(camera, lines2d[i, 0:2])
-    r2 = pixels_to_rays(camera, lines2d[i, 2:4])
-    P1, P2 = lines3d[j, 0:3] @ R.T, lines3d[j, 3:6] @ R.T
-    D = P2 - P1
-    a11 = np.einsum("pk,pk->p", r2, r2)
-    a12 = -np.einsum("pk,pk->p", r2, r1)
-    a22 = np.einsum("pk,pk->p", r1, r1)
-    b1, b2 = np.einsum("pk,pk->p", r2, D), -np.einsum("pk,pk->p", r1, D)
+    r1, r2 = pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])
+    a11, a22 = np.einsum("nk,nk->n", r2, r2)[i], np.einsum("nk,nk->n", r1, r1)[i]
+    a12 = -np.einsum("nk,nk->n", r1, r2)[i]
+    D = pairs.ends[:, 3:6] - pairs.ends[:, 0:3]
+    b1, b2 = np.einsum("pk,pk->p", r2[i], D[j]), -np.einsum("pk,pk->p", r1[i], D[j])
     det = a11 * a22 - a12 * a12  # > 0 unless the two rays coincide (a point-like segment)
     with np.errstate(divide="ignore", invalid="ignore"):
         a = (a22 * b1 - a12 * b2) / det
         b = (a11 * b2 - a12 * b1) / det
-    forward, backward = (a > 0) & (b > 0), (a < 0) & (b < 0)
-    sign = np.where(forward, 1.0, -1.0)[:, None]
-    near, far = np.where(forward[:, None], P1, P2), np.where(forward[:, None], P2, P1)
-    T = 0.5 * ((sign * b[:, None]) * r1 - near + (sign * a[:, None]) * r2 - far)
-    ok = forward | backward
-    depth = 0.5 * np.abs(a * r2[:, 2] + b * r1[:, 2])
-    return T[ok], depth[ok]
+    forward = (a > 0) & (b > 0)
+    ok = np.flatnonzero(forward | ((a < 0) & (b < 0)))
+    i, j, a, b, forward = i[ok], j[ok], np.abs(a[ok]), np.abs(b[ok]), forward[ok, None]
+    P1, P2 = pairs.ends[j, 0:3], pairs.ends[j, 3:6]
+    near, far = np.where(forward, P1, P2), np.where(forward, P2, P1)  # the 3D ends seen at r1 and r2
+    T = 0.5 * (b[:, None] * r1[i] - near + a[:, None] * r2[i] - far)
+    depth = 0.5 * (a * r2[i, 2] + b * r1[i, 2])
+    return T, depth
 
 
 def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int) -> np.ndarray:
@@ -100,10 +99,11 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int) -> np.ndarra
         counts.append(count[best])
     T_all, c_all = np.concatenate(found), np.concatenate(counts)
     order = np.argsort(-c_all, kind="stable")
-    chosen: list[np.ndarray] = []
-    for k in order:
-        if all(np.linalg.norm((T_all[k] - t) @ R) > cell for t in chosen):
-            chosen.append(T_all[k])
-        if len(chosen) == top:
-            break
-    return np.array(chosen)
+    T_all = T_all[order]
+    # greedy: keep a cell unless a fuller kept one lies within a cell size (same hypothesis, other grid)
+    near = np.linalg.norm(T_all[:, None, :] - T_all[None, :, :], axis=2) <= cell
+    kept: list[int] = []
+    for k in range(len(T_all)):
+        if not near[k, kept].any():
+            kept.append(k)
+    return T_all[kept[:top]]

@@ -89,7 +89,7 @@ def test_pair_inliers_is_a_lower_bound_of_match_segments():
     R, t = scene.cam_from_world[:3, :3], scene.cam_from_world[:3, 3]
     pairs = compatible_pairs(scene.lines2d, scene.lines3d, scene.camera, R, clusters, 6.0)
     T = t + np.random.default_rng(0).normal(scale=0.02, size=(5, 3))
-    counts = pair_inliers(scene.lines2d, scene.lines3d, scene.camera, R, pairs, T, MATCH)
+    counts = pair_inliers(scene.lines2d, scene.camera, pairs, T, MATCH)
     for t_k, c in zip(T, counts, strict=True):
         exact = len(
             match_segments(scene.lines2d, scene.lines3d, scene.camera, make_cam_from_world(R, t_k), MATCH)
