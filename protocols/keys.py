@@ -27,6 +27,12 @@ def instance_localize_key(map_name: str, instance: str) -> str:
     )
 
 
+def tile_localize_key(map_name: str, tile: str) -> str:
+    """Returns the localize key of one map tile (``tile`` = ``*``: the selector reaching every tile)."""
+    tile = tile if tile == "*" else check_chunk(tile, "tile")
+    return f"{PREFIX}/{check_chunk(map_name, 'map name')}/tile/{tile}/localize"
+
+
 def info_key(map_name: str) -> str:
     """Returns the key answering the map's metadata."""
     return f"{PREFIX}/{check_chunk(map_name, 'map name')}/info"

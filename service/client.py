@@ -107,6 +107,21 @@ class Client:
         )
         return self._localize(req, timeout)
 
+    def localize_tiles(self, image, camera: Camera, prior=None, timeout: float = 10.0) -> Registration:
+        """Returns the Registration with the most inliers among every tile's answer (map split over instances)."""
+        data, fmt = encode_image(image)
+        req = LocalizeRequest(
+            self._next_id(), camera, data, fmt, None, wire_prior(prior), int(timeout * 1000), True
+        )
+        key = keys.tile_localize_key(self.map_name, "*")
+        replies = list(self.session.get(key, payload=protocols.encode_request(req), timeout=timeout))
+        answers = [protocols.decode_reply(r.ok.payload.to_bytes()) for r in replies if r.ok is not None]
+        if not answers:
+            errors = [r.err.payload.to_bytes() for r in replies if r.err is not None]
+            raise _error_of(errors[0]) if errors else ServiceError("timeout", f"no tile answered on {key}")
+        best = max(answers, key=lambda a: (a.success, a.num_inliers))
+        return best.to_registration()
+
     def info(self, timeout: float = 5.0) -> dict:
         """Returns the served map's metadata (name, version, bounds, ...)."""
         return self._document(keys.info_key(self.map_name), timeout)["map"]

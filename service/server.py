@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import signal
+import socket
 import threading
 import time
 import uuid
@@ -30,7 +32,8 @@ class ServiceConfig:
     loader: str = "service.engine:load_map_engine"  # "module:function" building the Engine in each worker
     loader_args: tuple = ()
     map_name: str | None = None  # default: the map's own name
-    instance: str | None = None  # default: a short random id
+    instance: str | None = None  # default: host name and a short random suffix
+    tile: str | None = None  # also serve linereg/<map>/tile/<tile>/localize (a map split over instances)
     workers: int = 2
     queue_size: int = 8
     mode: str | None = "router"  # None: the zenoh config file's
@@ -48,7 +51,7 @@ class Service:
 
     def __init__(self, config: ServiceConfig) -> None:
         self.config = config
-        self.instance = config.instance or uuid.uuid4().hex[:8]
+        self.instance = config.instance or default_instance()
         self.stats = Stats()
         self.pool = WorkerPool(
             config.loader,
@@ -95,6 +98,8 @@ class Service:
                 lambda q, k: self._reply(q, k, handle_stats(b"", self.snapshot())),
             ),
         ]
+        if cfg.tile:
+            routes.append((keys.tile_localize_key(self.map_name, cfg.tile), self._on_localize))
         for key, handler in routes:
             queryable = self.session.declare_queryable(key, zenoh.handlers.FifoChannel(256))
             thread = threading.Thread(
@@ -190,6 +195,12 @@ class Service:
             query.drop()  # the final reply: the client stops waiting now
         except Exception as e:  # the client is gone; nothing to answer
             log.info("reply not delivered", extra={"fields": {"error": str(e)}})
+
+
+def default_instance() -> str:
+    """Returns ``<host>-<4 hex>``: readable in logs, unique among replicas on one host."""
+    host = re.sub(r"[^A-Za-z0-9_.-]", "-", socket.gethostname())[:40] or "host"
+    return f"{host}-{uuid.uuid4().hex[:4]}"
 
 
 def run(config: ServiceConfig) -> int:

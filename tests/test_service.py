@@ -219,3 +219,27 @@ def test_linereg_package_never_imports_zenoh():
     code = "import sys, linereg, linereg.cli; linereg.cli.build_parser(); print('zenoh' in sys.modules)"
     out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def test_scale_out_tiles_and_replicas():
+    first, second = free_endpoint(), free_endpoint()
+    a = fake_config(first, workers=1, instance="i1", tile="a", map_name="tiled")
+    b = fake_config(second, workers=1, instance="i2", tile="b", map_name="tiled", connect=(first,))
+    with Service(a) as sa, Service(b) as sb, Client(first, map_name="tiled") as c:
+        for _ in range(50):  # the second router's declarations take a moment to arrive
+            if len(c.instances("tiled")) == 2:
+                break
+            time.sleep(0.1)
+        assert c.instances("tiled") == [("tiled", "i1"), ("tiled", "i2")]
+        lines = segments_with([5.0, 6.0, 7.0, 8.0])
+        request = protocols.encode_request(protocols.LocalizeRequest("t", CAMERA, segments=lines))
+        replies = list(c.session.get(keys.tile_localize_key("tiled", "*"), payload=request, timeout=5.0))
+        assert sum(r.ok is not None for r in replies) == 2  # every tile answers a wildcard query
+        image = np.zeros((240, 320), np.uint8)
+        assert c.localize_tiles(image, CAMERA).success
+        balanced = Client(first, map_name="tiled", balance=True)
+        for _ in range(6):
+            assert balanced.localize_segments(lines, CAMERA).success
+        balanced.close()
+        served = [s.stats.snapshot()["outcomes"].get("ok", 0) for s in (sa, sb)]
+        assert min(served) >= 3  # round robin over the instances' own keys

@@ -10,6 +10,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--map", required=True, help="LineMap file to serve")
     parser.add_argument("--name", help="map name on the network (default: the map's own name)")
     parser.add_argument("--instance", help="instance id in keys and liveliness (default: random)")
+    parser.add_argument(
+        "--tile", help="also serve linereg/<map>/tile/<TILE>/localize (map split over instances)"
+    )
     parser.add_argument("--workers", type=int, default=2, help="worker processes, each with the map loaded")
     parser.add_argument(
         "--queue", type=int, default=8, help="requests waiting beyond the workers before 'busy'"
@@ -50,7 +53,7 @@ def config_from_args(args: argparse.Namespace):
     listen = tuple(args.listen) if args.listen else default_listen
     return ServiceConfig(
         loader=args.engine, loader_args=(args.map, args.name), map_name=args.name,
-        instance=args.instance, workers=args.workers, queue_size=args.queue, mode=mode, listen=listen,
+        instance=args.instance, tile=args.tile, workers=args.workers, queue_size=args.queue, mode=mode, listen=listen,
         connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
     )  # fmt: skip
 
