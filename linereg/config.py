@@ -45,8 +45,10 @@ class ParallelConfig:
 class RotationConfig:
     """Rotation candidates from VD <-> 3D direction pairings."""
 
-    pair_angle_tolerance_deg: float = 5.0  # angle(VD1, VD2) must match angle(D1, D2) within this
-    third_pair_tolerance_deg: float = 5.0  # a third pair validates a candidate within this
+    # angle(VD1, VD2) must match angle(D1, D2) within this; VDs of ~25 short segments at 2 px noise are off
+    # by 2-5 deg (their distance from the image is poorly fixed), so 5 would reject true pairings
+    pair_angle_tolerance_deg: float = 8.0
+    third_pair_tolerance_deg: float = 8.0  # a third pair validates a candidate within this (same reason)
     dedupe_angle_deg: float = 1.0  # candidates closer than this are one
     min_pair_angle_deg: float = 10.0  # two directions closer than this to (anti)parallel cannot fix a rotation
     top_k: int = 3  # pairings are tried among the strongest top_k VDs and top_k 3D clusters
