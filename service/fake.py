@@ -1,7 +1,8 @@
 """A deterministic stand-in engine for tests and benchmarks of the service without the geometry.
 
 The "pose" it returns encodes its input (so a test can check every reply is the right one), and a first
-segment with ``x1 < 0`` asks for a behaviour: -1 crash the worker, -2 sleep ``y1`` seconds, -3 raise.
+segment with ``x1 < 0`` asks for a behaviour: -1 crash the worker, -2 sleep ``y1`` seconds, -3 raise,
+-4 answer "not localized", -5 compute for ``y1`` seconds (CPU-bound, like a real localization).
 """
 
 from __future__ import annotations
@@ -41,6 +42,14 @@ def _registration(data: np.ndarray) -> Registration:
     )
 
 
+def _spin(seconds: float) -> None:
+    """Keeps exactly one core busy for ``seconds`` (pure Python: no BLAS threads)."""
+    end = time.perf_counter() + seconds
+    total = 0
+    while time.perf_counter() < end:
+        total += sum(i * i for i in range(1000))
+
+
 def fake_localize(image, line_map, camera, config=None, prior=None) -> Registration:
     """Returns a Registration whose translation encodes ``image``'s sum and shape."""
     return _registration(np.asarray(image))
@@ -56,6 +65,8 @@ def fake_localize_segments(lines2d, line_map, camera, config=None, prior=None) -
         time.sleep(float(lines2d[0, 1]))
     if code == -3:
         raise RuntimeError("fake engine failure")
+    if code == -5:
+        _spin(float(lines2d[0, 1]))
     if code == -4:
         return Registration(success=False, reason="too few segments")
     return _registration(lines2d)

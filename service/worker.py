@@ -20,10 +20,21 @@ from .handlers import handle_localize
 log = logging.getLogger(__name__)
 
 
+def _quiet_opencv() -> None:
+    """Silences OpenCV's warnings on stderr: an image that does not decode is answered, not logged twice."""
+    try:
+        import cv2
+
+        cv2.setLogLevel(2)  # errors only
+    except (ImportError, AttributeError):
+        pass
+
+
 def worker_main(conn, loader: str, loader_args: tuple, limits: Limits) -> None:
     """Runs in the child process: load, announce, serve the pipe until EOF or an empty message."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent decides when workers stop
     signal.signal(signal.SIGTERM, signal.SIG_DFL)
+    _quiet_opencv()
     try:
         engine = load_engine(loader, loader_args)
     except Exception as e:
