@@ -136,14 +136,18 @@ def principal_direction(vectors: np.ndarray, weights: np.ndarray, largest: bool)
 def refit_directions(
     vectors: np.ndarray, weights: np.ndarray, labels: np.ndarray, directions: np.ndarray, largest: bool
 ) -> np.ndarray:
-    """Returns (K, 3) directions re-fitted by ``principal_direction`` on each cluster's members; a cluster
-    without members keeps its direction (an empty scatter has no meaningful eigenvector)."""
-    out = directions.copy()
-    for k in range(len(directions)):
-        sel = labels == k
-        if sel.any():
-            out[k] = principal_direction(vectors[sel], weights[sel], largest)
-    return out
+    """Returns (K, 3) directions re-fitted by ``principal_direction`` on each cluster's members, all clusters
+    at once; a cluster without members keeps its direction (an empty scatter has no eigenvector)."""
+    k = len(directions)
+    ok = labels >= 0
+    lab, v, w = labels[ok], vectors[ok], weights[ok]
+    scatter = np.empty((k, 3, 3))
+    for p, q in ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2)):  # the 6 distinct entries, per cluster
+        scatter[:, p, q] = scatter[:, q, p] = np.bincount(lab, weights=w * v[:, p] * v[:, q], minlength=k)
+    _, vecs = np.linalg.eigh(scatter)  # ascending eigenvalues, (K, 3, 3)
+    fitted = vecs[:, :, -1] if largest else vecs[:, :, 0]
+    empty = np.bincount(lab, minlength=k) == 0
+    return np.where(empty[:, None], directions, fitted)
 
 
 def merge_clusters(

@@ -95,9 +95,8 @@ def _best_vd(
     so ``length^2`` is its inverse variance.
     """
     idx = np.flatnonzero(left)
-    a = idx[sample_weighted(lengths[idx], config.ransac_iterations, rng)]
-    b = idx[sample_weighted(lengths[idx], config.ransac_iterations, rng)]
-    na, nb = normals[a], normals[b]
+    pairs = idx[sample_weighted(lengths[idx], 2 * config.ransac_iterations, rng)]
+    na, nb = normals[pairs[0::2]], normals[pairs[1::2]]
     hyp = na[:, [1, 2, 0]] * nb[:, [2, 0, 1]] - na[:, [2, 0, 1]] * nb[:, [1, 2, 0]]  # n_a x n_b
     norm = np.linalg.norm(hyp, axis=1)
     hyp = hyp[norm > 1e-9] / norm[norm > 1e-9, None]  # drops a == b and (near-)collinear pairs
@@ -109,10 +108,9 @@ def _best_vd(
     np.subtract(1.0, score, out=score)
     np.maximum(score, 0.0, out=score)
     members = (score[np.argmax(score @ (lengths * left))] > 0.0) & left
-    for _ in range(2):  # refit on the members, then re-collect them around the refined VD
-        v = principal_direction(normals[members], lengths[members] ** 2, largest=False)
-        members = (_ratios(test, K, v[None])[0] <= 1.0) & left
-    return v, members
+    # refit on the members, then re-collect them around the refined VD (LO-RANSAC step)
+    v = principal_direction(normals[members], lengths[members] ** 2, largest=False)
+    return v, (_ratios(test, K, v[None])[0] <= 1.0) & left
 
 
 def _segment_test(lines2d: np.ndarray, lengths: np.ndarray, config: VanishingConfig) -> _SegmentTest:
