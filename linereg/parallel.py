@@ -3,7 +3,8 @@
 A hypothesis is the direction of one sampled segment (long ones preferred); a segment supports it when
 ``|d_i . d| >= cos(1 deg)`` (sign-free: a 3D line has no orientation). The best hypothesis by summed member
 length is refined, its members removed, and the search repeated ``num_clusters`` (paper: c = 5) times;
-near-duplicate directions are then merged, every segment re-assigned and the clusters sorted by support.
+near-duplicate directions are then merged (with their members), segments no round took are assigned to a
+direction they pass, and the clusters are sorted by support.
 
 The helpers below (scatter eigenvectors, merging, sorting, sign) are shared with ``vanishing``.
 """
@@ -37,7 +38,8 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
     left = usable.copy()  # not yet in a cluster
     # one (H, S) work buffer for all rounds: fresh large temporaries cost more in page faults than the math
     work = np.empty(config.ransac_iterations * min(len(d), _SCORE_SAMPLE), dtype=np.float32)
-    found, labels = [], np.full(len(d), -1, dtype=np.int64)
+    found: list[np.ndarray] = []
+    labels = np.full(len(d), -1, dtype=np.int64)
     for _ in range(config.num_clusters):
         if np.count_nonzero(left) < max(config.min_lines, 1):
             break
@@ -171,7 +173,7 @@ def merge_clusters(
 
 
 def canonical_sign(directions: np.ndarray) -> np.ndarray:
-    """Returns (K, 3) directions flipped so that z > 0 (ties at z = 0: y > 0, then x > 0)."""
+    """Returns (K, 3) directions flipped so that z >= 0 (at z = 0: y > 0; at y = z = 0: x > 0)."""
     key = np.where(
         directions[:, 2] != 0, directions[:, 2], np.where(directions[:, 1] != 0, directions[:, 1], 1)
     )

@@ -19,6 +19,8 @@ import numpy as np
 from .camera import Camera
 from .config import RegisterConfig, RotationConfig
 from .directions import DirectionClusters
+from .parallel import parallel_clusters
+from .vanishing import vanishing_directions
 
 logger = logging.getLogger(__name__)
 
@@ -62,9 +64,12 @@ def rotation_candidates(
     wv, wd = _weights(vds.support[: len(V)]), _weights(clusters.support[: len(D)])
     score = np.sqrt(wv[pairs[..., 0]] * wd[pairs[..., 1]]).sum(axis=1) - 0.01 * residual
     order = _dedupe(R, np.argsort(-score, kind="stable"), config.dedupe_angle_deg)[: config.max_candidates]
+    logger.debug(
+        "%d pairings, %d confirmed by a third, %d distinct", len(confirmed), confirmed.sum(), len(order)
+    )
     return [
         RotationCandidate(
-            R[n], tuple((int(i), int(a), int(s)) for i, a, s in pairs[n]), residual[n], score[n]
+            R[n], tuple((int(i), int(a), int(s)) for i, a, s in pairs[n]), float(residual[n]), float(score[n])
         )
         for n in order
     ]
@@ -75,9 +80,6 @@ def rotation_candidates_from_segments(
 ) -> tuple[list[RotationCandidate], DirectionClusters, DirectionClusters]:
     """Returns (rotation candidates, vanishing directions, 3D parallel clusters) of (N, 4) undistorted pixel
     and (M, 6) world segments: Algorithm 1 end to end."""
-    from .parallel import parallel_clusters
-    from .vanishing import vanishing_directions
-
     config = config or RegisterConfig()
     vds = vanishing_directions(lines2d, camera, config.vanishing)
     clusters = parallel_clusters(lines3d, config.parallel)

@@ -32,12 +32,14 @@ logger = logging.getLogger(__name__)
 
 
 class _SegmentTest(NamedTuple):
-    """Per-segment terms of the midpoint-to-VP angle test, so that an (H, N) test is two matrix products."""
+    """Per-segment terms of the midpoint-to-VP angle test, so that an (H, N) test is two matrix products.
 
-    A: (
-        np.ndarray
-    )  # (3, N) homogeneous line through the midpoint along the segment: p @ A = s x (p_xy - p_z m)
-    Q: np.ndarray  # (4, N) with [|p_xy|^2, p_z p_x, p_z p_y, p_z^2] @ Q = |p_xy - p_z m|^2 * sin^2(tolerance)
+    A: (3, N) homogeneous line through each midpoint m along its unit direction s: ``p @ A = s x (p_xy - p_z m)``
+    Q: (4, N) with ``[|p_xy|^2, p_z p_x, p_z p_y, p_z^2] @ Q = |p_xy - p_z m|^2 sin^2(tolerance)``
+    """
+
+    A: np.ndarray
+    Q: np.ndarray
 
 
 def vanishing_directions(
@@ -57,7 +59,8 @@ def vanishing_directions(
     left = usable.copy()  # not yet in a cluster
     # one work buffer for all rounds: fresh (H, N) temporaries cost more in page faults than the math
     work = np.empty(2 * config.ransac_iterations * len(lines2d))
-    found, found_labels = [], np.full(len(lines2d), -1, dtype=np.int64)
+    found: list[np.ndarray] = []
+    found_labels = np.full(len(lines2d), -1, dtype=np.int64)
     for _ in range(config.num_clusters):
         if np.count_nonzero(left) < max(config.min_lines, 2):
             break
@@ -69,8 +72,9 @@ def vanishing_directions(
         left &= ~members
     merged, directions = merge_clusters(np.array(found).reshape(-1, 3), found_labels, config.merge_angle_deg)
     labels = merged
-    for _ in range(2):  # re-fit, then re-assign: a segment goes to the VD it fits best (short ones pass
-        # several; the first RANSAC round took them), else stays in its merged cluster
+    # re-fit, then re-assign: a segment goes to the VD it fits best (a short one passes several and the
+    # first round took it), else stays in its merged cluster
+    for _ in range(2):
         directions = refit_directions(normals, lengths**2, labels, directions, largest=False)
         assigned = _assign(test, camera.K, directions, usable)
         labels = np.where(assigned >= 0, assigned, merged)
