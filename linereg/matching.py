@@ -89,15 +89,18 @@ def match_segments(
     projected, visible = project_segments(lines3d, camera, cam_from_world, config.min_depth_m)
     H, u, length, offset = _lines(lines2d)
     d1 = np.abs(H[:, :2] @ projected[:, 0:2].T + H[:, 2:3])
-    d2 = np.abs(H[:, :2] @ projected[:, 2:4].T + H[:, 2:3])
-    i, j = np.nonzero((d1 <= config.distance_px) & (d2 <= config.distance_px) & visible[None, :])
+    i, j = np.nonzero((d1 <= config.distance_px) & visible[None, :])
+    d1 = d1[i, j]
+    d2 = np.abs(H[i, 0] * projected[j, 2] + H[i, 1] * projected[j, 3] + H[i, 2])
+    near = d2 <= config.distance_px
+    i, j, d1, d2 = i[near], j[near], d1[near], d2[near]
     s1 = np.einsum("pk,pk->p", u[i], projected[j, 0:2]) - offset[i]
     s2 = np.einsum("pk,pk->p", u[i], projected[j, 2:4]) - offset[i]
     lo = np.maximum(np.minimum(s1, s2), 0.0)
     hi = np.minimum(np.maximum(s1, s2), length[i])
     keep = (hi - lo) / length[i] > config.min_overlap
     i, j = i[keep], j[keep]
-    dist = 0.5 * (d1[i, j] + d2[i, j])
+    dist = 0.5 * (d1[keep] + d2[keep])
     order = np.lexsort((j, dist, i))  # by 2D segment, then distance, then lowest 3D index
     first = order[np.r_[True, i[order][1:] != i[order][:-1]]] if len(order) else order
     return np.c_[i[first], j[first]].astype(np.int64).reshape(-1, 2)

@@ -12,7 +12,7 @@ import numpy as np
 
 from .camera import Camera
 from .config import MatchConfig, TranslationConfig
-from .translation import Pairs, pair_inliers
+from .translation_pairs import Pairs, pair_inliers
 
 _BATCH = 64  # hypotheses scored per vectorised batch
 
@@ -35,11 +35,12 @@ def ransac_candidates(
         size = min(_BATCH, config.ransac_iterations - drawn)
         drawn += size
         pick = rng.integers(0, len(pairs.i), size=(size, 3))
-        A = pairs.normal[pick]  # (size, 3, 3): one coplanarity equation per row
+        normal, offset = pairs.coplanarity(pick.ravel())
+        A, b = normal.reshape(size, 3, 3), -offset.reshape(size, 3, 1)  # one equation per row
         ok = np.abs(np.linalg.det(A)) > 1e-3  # skip (near-)parallel planes: t undetermined
         if not ok.any():
             continue
-        T = np.linalg.solve(A[ok], -pairs.offset[pick[ok]][..., None])[..., 0]
+        T = np.linalg.solve(A[ok], b[ok])[..., 0]
         counts = pair_inliers(lines2d, camera, pairs, T, match)
         found_T.append(T)
         found_n.append(counts)

@@ -18,7 +18,7 @@ import numpy as np
 from .camera import Camera
 from .config import MatchConfig, TranslationConfig
 from .geometry import pixels_to_rays, segment_lengths
-from .translation import Pairs, pair_inliers
+from .translation_pairs import Pairs, pair_inliers
 
 _BORDER_PX = 2.0  # a 2D endpoint this close to the image border may be clipped: no hypothesis from it
 _KEY_BITS = 20  # grid coordinates are packed into one int64 key, 20 bits each
@@ -34,7 +34,9 @@ def search_candidates(
     match: MatchConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((H, 3) translations, (H,) inlier counts) of the best voted hypotheses (may be empty)."""
-    T, depth = pair_hypotheses(lines2d, lines3d, camera, R, pairs, config.seed_min_length_px)
+    T, depth = pair_hypotheses(
+        lines2d, lines3d, camera, R, pairs, config.seed_min_length_px, config.max_hypotheses
+    )
     if len(T) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     cell = config.cell_fraction * float(np.partition(depth, len(depth) // 2)[len(depth) // 2])
@@ -49,6 +51,7 @@ def pair_hypotheses(
     R: np.ndarray,
     pairs: Pairs,
     min_length_px: float,
+    max_hypotheses: int = 1 << 62,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((H, 3) t, (H,) mean endpoint depth) of the pairs read as whole-segment correspondences.
 
@@ -58,7 +61,12 @@ def pair_hypotheses(
     lo, hi = _BORDER_PX, np.array([camera.width, camera.height]) - 1.0 - _BORDER_PX
     inside = np.all((lines2d[:, 0:2] > lo) & (lines2d[:, 0:2] < hi), axis=1)
     inside &= np.all((lines2d[:, 2:4] > lo) & (lines2d[:, 2:4] < hi), axis=1)
-    usable = inside & (segment_lengths(lines2d) >= min_length_px)
+    lengths = segment_lengths(lines2d)
+    usable = inside & (lengths >= min_length_px)
+    # on large maps, only the longest segments (most precise, most often whole) seed, up to a budget
+    per_segment = np.bincount(pairs.i, minlength=len(lines2d)) * usable
+    by_length = np.argsort(-lengths, kind="stable")
+    usable[by_length[np.cumsum(per_segment[by_length]) > max_hypotheses]] = False
     keep = np.flatnonzero(usable[pairs.i])
     i, j = pairs.i[keep], pairs.j[keep]
     r1, r2 = pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])

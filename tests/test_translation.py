@@ -1,5 +1,7 @@
 """Translation per rotation candidate (paper III-C): known answers on synthetic scenes, bad input."""
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -10,7 +12,8 @@ from linereg.geometry import make_cam_from_world
 from linereg.matching import match_matrix, match_segments, project_segments
 from linereg.parallel import parallel_clusters
 from linereg.synthetic import paper_scene
-from linereg.translation import compatible_pairs, estimate_translation, pair_inliers
+from linereg.translation import estimate_translation
+from linereg.translation_pairs import compatible_pairs, pair_inliers, pair_matches
 from linereg.translation_search import pair_hypotheses
 
 MATCH = MatchConfig()
@@ -152,3 +155,18 @@ def test_single_cluster_does_not_raise():
             MATCH,
         )
         assert h.num_inliers == len(h.matches) and h.t.shape == (3,)
+
+
+def test_bearing_prefilter_finds_the_same_inliers_as_the_plane_prefilter():
+    scene, clusters = _scene(7, num_lines=150)
+    R, t = scene.cam_from_world[:3, :3], scene.cam_from_world[:3, 3]
+    pairs = compatible_pairs(scene.lines2d, scene.lines3d, scene.camera, R, clusters, 6.0)
+    many = dataclasses.replace(pairs, plane_ij=np.zeros((0, 3)), plane_offset=np.zeros(0))  # as on a big map
+    T = t + np.random.default_rng(2).normal(scale=0.01, size=(4, 3))
+    direct = set(
+        zip(*(a.tolist() for a in pair_matches(scene.lines2d, scene.camera, pairs, T, MATCH)), strict=True)
+    )
+    near = set(
+        zip(*(a.tolist() for a in pair_matches(scene.lines2d, scene.camera, many, T, MATCH)), strict=True)
+    )
+    assert near <= direct and len(near) >= 0.95 * len(direct) > 0
