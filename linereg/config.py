@@ -78,7 +78,8 @@ class TranslationConfig:
     # of this fraction of the median depth (a pair's error grows with depth, ~3 % for 100 px at 2 px noise)
     cell_fraction: float = 0.04
     seed_min_length_px: float = 20.0  # "search": shorter 2D segments give too vague a hypothesis
-    num_verify: int = 12  # "search": fullest cells scored with the inlier test
+    num_verify: int = 32  # "search": at most this many of the fullest cells are scored with the inlier test,
+    verify_fraction: float = 0.3  # ... those with at least this fraction of the fullest cell's votes
     max_hypotheses: int = 20_000  # "search": on large maps only the longest 2D segments seed, up to this many
     polish_rounds: int = 2  # least squares on the coplanarity equations + re-match, both methods
     distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
