@@ -79,25 +79,35 @@ def scene_size(lines3d: np.ndarray) -> float:
     return float(max(np.linalg.norm(ends.max(axis=0) - ends.min(axis=0)), 1e-9))
 
 
-def refine_translation(plane: np.ndarray, ends: np.ndarray, t: np.ndarray, matches: np.ndarray) -> np.ndarray:
-    """Returns (3,) t minimising the depth-weighted coplanarity residuals of matches (eq. "coplanar").
+def refine_translation(
+    plane: np.ndarray,
+    ends: np.ndarray,
+    t: np.ndarray,
+    matches: np.ndarray,
+    scale_rad: float,
+    iterations: int = 3,
+) -> np.ndarray:
+    """Returns (3,) t minimising the robust, depth-weighted coplanarity residuals of matches (eq. "coplanar").
 
     plane: (N, 3) interpretation normals of the 2D segments; ends: (M, 6) rotated 3D endpoints ``R P``.
     Both endpoints of each matched 3D segment must lie on the 2D segment's interpretation plane; dividing
-    by depth makes each residual an angle (~ pixels / f). A weak prior on the current t keeps directions
-    no match constrains (e.g. along the only cluster's direction) where they were.
+    by depth makes each residual an angle (~ pixels / f). Iteratively reweighted (Cauchy, scale_rad) so
+    that accidental matches do not pull; a weak prior on the current t keeps directions no match
+    constrains (e.g. along the only cluster's direction) where they were.
     """
     if len(matches) == 0:
         return t
     n = np.r_[plane[matches[:, 0]], plane[matches[:, 0]]]
     P = np.r_[ends[matches[:, 1], 0:3], ends[matches[:, 1], 3:6]]
-    depth = np.maximum(P[:, 2] + t[2], 1e-3)
-    A = n / depth[:, None]
-    b = -np.einsum("pk,pk->p", n, P) / depth
-    prior = 1e-3 / max(float(depth.mean()), 1e-3)
-    lhs = A.T @ A + prior**2 * np.eye(3)
-    rhs = A.T @ b + prior**2 * t
-    return np.linalg.solve(lhs, rhs)
+    np_ = np.einsum("pk,pk->p", n, P)
+    for _ in range(iterations):
+        depth = np.maximum(P[:, 2] + t[2], 1e-3)
+        residual = (np_ + n @ t) / depth
+        w = 1.0 / (depth * np.sqrt(1.0 + (residual / scale_rad) ** 2))  # sqrt of Cauchy weight, per depth
+        A, b = n * w[:, None], -np_ * w
+        prior = 1e-3 * float(w.mean())
+        t = np.linalg.solve(A.T @ A + prior**2 * np.eye(3), A.T @ b + prior**2 * t)
+    return t
 
 
 def finish(
@@ -148,10 +158,11 @@ def _polish(
     The rounds re-match on the compatible pairs (cheap); the result is matched once with match_segments.
     """
     best_t = np.asarray(t, float)
+    scale = 0.5 * match.distance_px / max(camera.fx, camera.fy)
     _, i, j = pair_matches(lines2d, camera, pairs, best_t[None], match)
     best_count = np.count_nonzero(np.bincount(i, minlength=len(lines2d)))
     for _ in range(rounds):
-        t_new = refine_translation(pairs.plane, pairs.ends, best_t, np.c_[i, j])
+        t_new = refine_translation(pairs.plane, pairs.ends, best_t, np.c_[i, j], scale)
         _, i_new, j_new = pair_matches(lines2d, camera, pairs, t_new[None], match)
         count = np.count_nonzero(np.bincount(i_new, minlength=len(lines2d)))
         if count < best_count:

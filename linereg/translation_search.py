@@ -22,6 +22,7 @@ from .translation_pairs import Pairs, pair_inliers
 
 _BORDER_PX = 2.0  # a 2D endpoint this close to the image border may be clipped: no hypothesis from it
 _KEY_BITS = 20  # grid coordinates are packed into one int64 key, 20 bits each
+_CORNER_PX = 4.0  # two segment ends this close form a corner
 
 
 def search_candidates(
@@ -40,7 +41,7 @@ def search_candidates(
     if len(T) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     cell = config.cell_fraction * float(np.partition(depth, len(depth) // 2)[len(depth) // 2])
-    T = vote_cells(T, R, cell, config.num_verify)
+    T = vote_cells(T, R, cell, config.num_verify, config.verify_fraction)
     return T, pair_inliers(lines2d, camera, pairs, T, match).astype(float)
 
 
@@ -63,10 +64,11 @@ def pair_hypotheses(
     inside &= np.all((lines2d[:, 2:4] > lo) & (lines2d[:, 2:4] < hi), axis=1)
     lengths = segment_lengths(lines2d)
     usable = inside & (lengths >= min_length_px)
-    # on large maps, only the longest segments (most precise, most often whole) seed, up to a budget
+    # on large maps only the likeliest whole segments seed, up to a budget: those whose both ends meet
+    # another segment's end (a corner: not a fragment), then one end, then none; longest first within
     per_segment = np.bincount(pairs.i, minlength=len(lines2d)) * usable
-    by_length = np.argsort(-lengths, kind="stable")
-    usable[by_length[np.cumsum(per_segment[by_length]) > max_hypotheses]] = False
+    rank = np.lexsort((-lengths, -_corner_ends(lines2d, _CORNER_PX)))
+    usable[rank[np.cumsum(per_segment[rank]) > max_hypotheses]] = False
     keep = np.flatnonzero(usable[pairs.i])
     i, j = pairs.i[keep], pairs.j[keep]
     r1, r2 = pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])
@@ -88,11 +90,13 @@ def pair_hypotheses(
     return T, depth
 
 
-def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int) -> np.ndarray:
+def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction: float = 0.0) -> np.ndarray:
     """Returns (K, 3) mean translations of the fullest camera-centre cells, fullest first (K <= top).
 
     Two grids shifted by half a cell; a cell of the second grid whose mean lies within a cell of an
-    already chosen one is the same hypothesis and is skipped.
+    already chosen one is the same hypothesis and is skipped. Cells with fewer than ``min_fraction`` of
+    the fullest cell's votes are left out (a clear winner needs no rivals checked; repeated structure
+    gives many full cells, and they all are).
     """
     centres = -T @ R  # camera centres -R^T t, world frame
     found, counts = [], []
@@ -107,6 +111,7 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int) -> np.ndarra
         counts.append(count[best])
     T_all, c_all = np.concatenate(found), np.concatenate(counts)
     order = np.argsort(-c_all, kind="stable")
+    order = order[c_all[order] >= min_fraction * c_all[order[0]]]
     T_all = T_all[order]
     # greedy: keep a cell unless a fuller kept one lies within a cell size (same hypothesis, other grid)
     near = np.linalg.norm(T_all[:, None, :] - T_all[None, :, :], axis=2) <= cell
@@ -115,3 +120,20 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int) -> np.ndarra
         if not near[k, kept].any():
             kept.append(k)
     return T_all[kept[:top]]
+
+
+def _corner_ends(lines2d: np.ndarray, radius_px: float) -> np.ndarray:
+    """Returns (N,) int64 how many of each segment's two ends lie within radius_px of another segment's end."""
+    ends = lines2d.reshape(-1, 2)
+    order = np.argsort(ends[:, 0], kind="stable")
+    xs = ends[order, 0]
+    lo = np.searchsorted(xs, xs - radius_px)
+    hi = np.searchsorted(xs, xs + radius_px, side="right")
+    n = hi - lo  # candidates by x, each end's window in the sorted order
+    a = np.repeat(np.arange(len(xs)), n)
+    b = np.repeat(lo - np.cumsum(n) + n, n) + np.arange(n.sum())
+    a, b = order[a], order[b]
+    near = (a // 2 != b // 2) & (np.hypot(*(ends[a] - ends[b]).T) <= radius_px)
+    met = np.zeros(len(ends), dtype=bool)
+    met[a[near]] = True
+    return met.reshape(-1, 2).sum(axis=1)
