@@ -123,8 +123,8 @@ def finish(
     """Returns the hypothesis from candidate translations (H, 3) ranked by approximate scores (H,).
 
     The best candidate is polished (least squares, re-match) and scored with ``match_segments``; so is
-    the best-scoring candidate whose camera centre lies clearly elsewhere (the runner-up). Should the
-    runner-up end with more inliers, the two swap.
+    the best-scoring candidate whose camera centre lies clearly elsewhere (the runner-up; polished only
+    when close). Should the runner-up end with more inliers, the two swap.
     """
     T, scores = candidates
     if len(T) == 0:
@@ -136,7 +136,9 @@ def finish(
     distinct = order[np.linalg.norm(T[order] - best_t, axis=1) > far]
     if len(distinct) == 0:
         return TranslationHypothesis(best_t, best, len(best), 0)
-    other_t, other = _polish(lines2d, lines3d, camera, R, pairs, T[distinct[0]], 1, match)
+    # a distant second (under 2/3 of the best's score) cannot win: counted exactly, not polished
+    rounds = 1 if scores[distinct[0]] >= (2.0 / 3.0) * scores[order[0]] else 0
+    other_t, other = _polish(lines2d, lines3d, camera, R, pairs, T[distinct[0]], rounds, match)
     if len(other) > len(best):
         best_t, best, other = other_t, other, best
     log.debug("translation: %d inliers, runner-up %d", len(best), len(other))

@@ -96,7 +96,7 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
     Two grids shifted by half a cell; a cell of the second grid whose mean lies within a cell of an
     already chosen one is the same hypothesis and is skipped. Cells with fewer than ``min_fraction`` of
     the fullest cell's votes are left out (a clear winner needs no rivals checked; repeated structure
-    gives many full cells, and they all are).
+    gives many full cells, and they all are), and so are cells beyond as many as the fullest has votes.
     """
     centres = -T @ R  # camera centres -R^T t, world frame
     found, counts = [], []
@@ -111,7 +111,8 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
         counts.append(count[best])
     T_all, c_all = np.concatenate(found), np.concatenate(counts)
     order = np.argsort(-c_all, kind="stable")
-    order = order[c_all[order] >= min_fraction * c_all[order[0]]]
+    # weak peaks (a wrong rotation) get few rivals checked: no more than the fullest cell has votes
+    order = order[c_all[order] >= min_fraction * c_all[order[0]]][: max(4, int(c_all[order[0]]))]
     T_all = T_all[order]
     # greedy: keep a cell unless a fuller kept one lies within a cell size (same hypothesis, other grid)
     near = np.linalg.norm(T_all[:, None, :] - T_all[None, :, :], axis=2) <= cell
