@@ -28,6 +28,10 @@ log = logging.getLogger(__name__)
 _CTX = mp.get_context("spawn")  # never fork: the zenoh session runs native threads
 
 
+def _nothing(ok: bool, reply: bytes, code: str) -> None:
+    """The callback of a job already answered."""
+
+
 @dataclass
 class Job:
     """One request in flight; ``done(ok, reply_bytes, code)`` is called exactly once."""
@@ -45,8 +49,9 @@ class Job:
             if self.finished:
                 return False
             self.finished = True
+        done, self.done, self.payload = self.done, _nothing, b""  # the deadline heap may outlive the job
         try:
-            self.done(ok, reply, code)
+            done(ok, reply, code)
         except Exception:
             log.exception("reply callback failed for request %s", self.request_id)
         return True
@@ -72,6 +77,7 @@ class WorkerPool:
         self._cv = threading.Condition()
         self._seq = itertools.count()
         self._closing = False
+        self._count_lock = threading.Lock()
 
     def start(self, timeout_s: float = 300.0) -> dict:
         """Starts every worker, waits until each has loaded the map; returns the first one's ready doc."""
@@ -165,8 +171,18 @@ class WorkerPool:
         if self._closing:
             self._procs[index] = None
             return
-        proc, conn = self._spawn(index)
-        self._procs[index] = (proc, conn, self._await_ready(proc, conn, 300.0))
+        while True:  # a worker that cannot start (out of memory, ...) is retried, never left missing
+            proc, conn = self._spawn(index)
+            try:
+                self._procs[index] = (proc, conn, self._await_ready(proc, conn, 300.0))
+                return
+            except RuntimeError as e:
+                log.error("worker failed to start", extra={"fields": {"error": str(e)}})
+                self._stop_process(proc, conn, kill=True)
+                time.sleep(1.0)
+                if self._closing:
+                    self._procs[index] = None
+                    return
 
     @staticmethod
     def _stop_process(proc, conn, kill: bool = False) -> None:
@@ -195,11 +211,13 @@ class WorkerPool:
                 continue
             if job.finished:  # answered ``timeout`` while it waited in the queue
                 continue
-            self.in_flight += 1
+            with self._count_lock:
+                self.in_flight += 1
             try:
                 self._run(index, job)
             finally:
-                self.in_flight -= 1
+                with self._count_lock:
+                    self.in_flight -= 1
 
     def _run(self, index: int, job: Job) -> None:
         """Runs one job on the slot's worker; answers ``internal`` and replaces the worker if it dies."""

@@ -161,44 +161,65 @@ def _children(pid: int) -> list[int]:
     return found
 
 
+def _memory_mb(pids: list[int]) -> tuple[float, float]:
+    """Returns (this process, its workers) resident memory in MB."""
+    return _rss_kb(os.getpid()) / 1024, sum(_rss_kb(p) for p in pids) / 1024
+
+
 def bench_soak(total: int, clients: int, garbage: float) -> dict:
-    """Returns the soak's outcome counts, losses, worker restarts/leaks and memory before/after (kB)."""
+    """Returns the soak's outcome counts, losses, worker restarts/leaks and memory over time (MB).
+
+    Clients keep one session for the whole soak (as robots do); memory is sampled every 0.5 s and compared
+    between the second and the last quarter of the run (the first quarter warms caches and routes up).
+    """
     from service.loadgen import run_client
 
+    counts: dict[str, int] = {}
+    latencies, samples = [], []
     with _service(2, queue=64) as svc:
         endpoint, pids = svc.config.listen[0], svc.pool.pids()
-        ctx = mp.get_context("spawn")
-        with ctx.Pool(clients) as pool:
-            pool.starmap(
-                run_client, [(endpoint, "bench", 50, garbage, 10_000 + c) for c in range(clients)]
-            )  # warm-up
-            memory_before = _rss_kb(os.getpid()) + sum(_rss_kb(p) for p in svc.pool.pids())
-            start = time.perf_counter()
-            args = [(endpoint, "bench", total // clients, garbage, c) for c in range(clients)]
-            runs = pool.starmap(run_client, args)
-            seconds = time.perf_counter() - start
-        memory_after = _rss_kb(os.getpid()) + sum(_rss_kb(p) for p in svc.pool.pids())
-        counts: dict[str, int] = {}
-        for r in runs:
-            for k, v in r["counts"].items():
-                counts[k] = counts.get(k, 0) + v
-        latencies = np.concatenate([r["latencies_s"] for r in runs]) * 1e3
-        workers_same = svc.pool.pids() == pids
-        restarts, children = svc.pool.restarts, len(_children(os.getpid()))
+        stop = threading.Event()
+        sampler = threading.Thread(target=_sample, args=(pids, samples, stop), daemon=True)
+        start = time.perf_counter()
+        sampler.start()
+        with mp.get_context("spawn").Pool(clients) as pool:
+            runs = pool.starmap(
+                run_client, [(endpoint, "bench", total // clients, garbage, c) for c in range(clients)]
+            )
+        seconds = time.perf_counter() - start
+        stop.set()
+        sampler.join()
+        same_pids, restarts, children = (
+            svc.pool.pids() == pids,
+            svc.pool.restarts,
+            len(_children(os.getpid())),
+        )
+    for run_ in runs:
+        latencies.extend(run_["latencies_s"])
+        for k, v in run_["counts"].items():
+            counts[k] = counts.get(k, 0) + v
+    ms, memory = np.array(latencies) * 1e3, np.array(samples).reshape(-1, 2)
+    quarter = max(1, len(memory) // 4)
     return {
         "queries": sum(counts.values()),
         "seconds": seconds,
-        "qps": len(latencies) / seconds,
+        "qps": len(ms) / seconds,
         "counts": counts,
         "lost_or_wrong": sum(v for k, v in counts.items() if k not in ("valid_right", "garbage_refused")),
-        "latency_p50_ms": float(np.median(latencies)),
-        "latency_p99_ms": float(np.percentile(latencies, 99)),
+        "latency_p50_ms": float(np.median(ms)),
+        "latency_p99_ms": float(np.percentile(ms, 99)),
         "worker_restarts": restarts,
-        "same_worker_pids": workers_same,
+        "same_worker_pids": same_pids,
         "child_processes_after": children,
-        "memory_before_kb": memory_before,
-        "memory_after_kb": memory_after,
+        "memory_mb_q2": memory[quarter : 2 * quarter].max(axis=0).tolist(),
+        "memory_mb_q4": memory[-quarter:].max(axis=0).tolist(),
+        "memory_mb_samples": memory.tolist(),
     }
+
+
+def _sample(pids: list[int], samples: list, stop: threading.Event) -> None:
+    while not stop.wait(0.5):
+        samples.append(_memory_mb(pids))
 
 
 def summary(results: dict) -> str:
@@ -213,8 +234,9 @@ def summary(results: dict) -> str:
         {"what": f"soak: lost or wrong of {soak['queries']}", "value": soak["lost_or_wrong"], "target": "0"},
         {"what": "  worker restarts / same pids", "value": f"{soak['worker_restarts']} / {soak['same_worker_pids']}",
          "target": "0 / True"},
-        {"what": "  memory before -> after (MB)",
-         "value": f"{soak['memory_before_kb'] / 1024:.0f} -> {soak['memory_after_kb'] / 1024:.0f}", "target": "flat"},
+        {"what": "  memory 2nd -> last quarter: service, workers (MB)",
+         "value": f"{soak['memory_mb_q2'][0]:.0f} -> {soak['memory_mb_q4'][0]:.0f}, "
+                  f"{soak['memory_mb_q2'][1]:.0f} -> {soak['memory_mb_q4'][1]:.0f}", "target": "flat"},
         {"what": "  queries/s, p50 / p99 ms",
          "value": f"{soak['qps']:.0f}, {soak['latency_p50_ms']:.1f} / {soak['latency_p99_ms']:.1f}", "target": ""},
     ]  # fmt: skip
