@@ -243,3 +243,11 @@ def test_scale_out_tiles_and_replicas():
         balanced.close()
         served = [s.stats.snapshot()["outcomes"].get("ok", 0) for s in (sa, sb)]
         assert min(served) >= 3  # round robin over the instances' own keys
+
+
+def test_local_service_context_for_the_demo():
+    from service.local import local_service
+
+    with local_service("unused", loader="service.fake:load_fake_engine") as c:
+        lines = segments_with([1.0, 1.0, 2.0, 2.0])
+        assert np.allclose(c.localize_segments(lines, CAMERA).cam_from_world, expected_pose(lines))

@@ -1,0 +1,57 @@
+"""End to end: the real library behind the service, a synthetic scene with a known pose, over zenoh."""
+
+from __future__ import annotations
+
+import socket
+
+import numpy as np
+import pytest
+
+import linereg
+from linereg.geometry import pose_errors
+
+pytest.importorskip("linereg.linemap", reason="LineMap not landed yet")
+synthetic = pytest.importorskip("linereg.synthetic")
+
+from service import Client, Service, ServiceConfig  # noqa: E402
+
+
+def _scene():
+    rng = np.random.default_rng(7)
+    make = getattr(synthetic, "building_scene", None) or synthetic.paper_scene
+    return make(rng)
+
+
+@pytest.fixture(scope="module")
+def served(tmp_path_factory):
+    scene = _scene()
+    path = tmp_path_factory.mktemp("map") / "lines3d.npy"
+    np.save(path, scene.lines3d)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    config = ServiceConfig(loader="service.engine:load_segments_engine", loader_args=(str(path), "e2e"),
+                           workers=1, listen=(endpoint,))  # fmt: skip
+    with Service(config), Client(endpoint, map_name="e2e") as client:
+        yield scene, client
+
+
+def test_pose_over_zenoh_matches_the_truth_and_the_in_process_call(served):
+    scene, client = served
+    line_map = linereg.LineMap.from_segments(scene.lines3d, name="e2e")
+    local = linereg.localize_segments(scene.lines2d, line_map, scene.camera)
+    remote = client.localize_segments(scene.lines2d, scene.camera, timeout=60.0)
+    assert remote.success == local.success
+    if local.success:
+        rot_deg, _, rel = pose_errors(remote.cam_from_world, scene.cam_from_world)
+        assert rot_deg < 2.0 and rel < 0.05
+        assert remote.num_inliers == local.num_inliers and remote.covariance.shape == (6, 6)
+    assert client.info()["name"] == "e2e"
+
+
+def test_position_prior_travels(served):
+    scene, client = served
+    center = -scene.cam_from_world[:3, :3].T @ scene.cam_from_world[:3, 3]
+    prior = linereg.Prior(position=center, radius_m=100.0)
+    remote = client.localize_segments(scene.lines2d, scene.camera, prior=prior, timeout=60.0)
+    assert remote.success or remote.reason
