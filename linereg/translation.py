@@ -1,11 +1,12 @@
 """Translation and 2D-3D correspondences for one rotation candidate (paper section III-C, Algorithm 2).
 
 With R fixed, a 2D segment i and a 3D segment j correspond only if j's camera-frame direction lies in i's
-interpretation plane; each such pair gives one linear equation in t (eq. "coplanar": ``(R P + t) . n = 0``).
-``"ransac"`` samples three pairs at a time as the paper does (``translation_ransac``); ``"search"`` (default)
-votes over the pairs of the parallel clusters (``translation_search``). Both end the same way: the best
-hypotheses are scored with the shared inlier test (``matching.match_segments``), so ``num_inliers`` is the
-paper's inlier count, and ``t`` is polished by weighted least squares on the coplanarity equations.
+interpretation plane (``translation_pairs``); each such pair gives one linear equation in t (eq.
+"coplanar": ``(R P + t) . n = 0``). ``"ransac"`` samples three pairs at a time as the paper does
+(``translation_ransac``); ``"search"`` (default) reads each pair as a whole-segment correspondence, which
+fixes t alone, and votes (``translation_search``). Both end the same way: the best hypotheses are
+polished by robust least squares on the coplanarity equations and scored with the shared inlier test
+(``matching.match_segments``), so ``num_inliers`` is the paper's inlier count.
 """
 
 from __future__ import annotations
@@ -99,12 +100,12 @@ def refine_translation(
         return t
     n = np.r_[plane[matches[:, 0]], plane[matches[:, 0]]]
     P = np.r_[ends[matches[:, 1], 0:3], ends[matches[:, 1], 3:6]]
-    np_ = np.einsum("pk,pk->p", n, P)
+    offset = np.einsum("pk,pk->p", n, P)
     for _ in range(iterations):
         depth = np.maximum(P[:, 2] + t[2], 1e-3)
-        residual = (np_ + n @ t) / depth
+        residual = (offset + n @ t) / depth
         w = 1.0 / (depth * np.sqrt(1.0 + (residual / scale_rad) ** 2))  # sqrt of Cauchy weight, per depth
-        A, b = n * w[:, None], -np_ * w
+        A, b = n * w[:, None], -offset * w
         prior = 1e-3 * float(w.mean())
         t = np.linalg.solve(A.T @ A + prior**2 * np.eye(3), A.T @ b + prior**2 * t)
     return t
