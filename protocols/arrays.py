@@ -10,7 +10,7 @@ import numpy as np
 from .errors import ProtocolError
 
 # wire dtype name -> numpy dtype (explicit little-endian: the wire byte order, whatever the host's)
-DTYPES = {
+DTYPES: dict[str, np.dtype] = {
     "uint8": np.dtype("<u1"),
     "uint16": np.dtype("<u2"),
     "int32": np.dtype("<i4"),

@@ -138,8 +138,8 @@ def decode_request(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> Localize
 
 def _decode_camera(d: dict, limits: Limits) -> Camera:
     """Returns the Camera of a wire camera map (strict: numbers must be numbers, not strings)."""
-    values = {k: number(d, k, f"camera.{k}") for k in ("fx", "fy", "cx", "cy")}
-    size = {k: require(d, k, int, f"camera.{k}") for k in ("width", "height")}
+    values: dict = {k: number(d, k, f"camera.{k}") for k in ("fx", "fy", "cx", "cy")}
+    size: dict = {k: require(d, k, int, f"camera.{k}") for k in ("width", "height")}
     if not all(0 < n <= 65535 for n in size.values()):
         raise ProtocolError("bad_request", "camera width and height must be in [1, 65535]")
     if size["width"] * size["height"] > limits.max_image_pixels:

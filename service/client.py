@@ -135,7 +135,8 @@ class Client:
         for reply in self.session.get(key, payload=payload, timeout=timeout):
             if reply.ok is not None:
                 return True, reply.ok.payload.to_bytes()
-            return False, reply.err.payload.to_bytes()
+            if reply.err is not None:
+                return False, reply.err.payload.to_bytes()
         raise ServiceError("timeout", f"no reply on {key} within {timeout} s")
 
     # --- internals -------------------------------------------------------------------------------------

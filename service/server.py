@@ -66,7 +66,7 @@ class Service:
         self.session: zenoh.Session | None = None
         self._draining = False
         self._threads: list[threading.Thread] = []
-        self._token = None
+        self._token: zenoh.LivelinessToken | None = None
 
     def __enter__(self) -> Service:
         return self.start()

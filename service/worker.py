@@ -25,7 +25,7 @@ def _quiet_opencv() -> None:
     try:
         import cv2
 
-        cv2.setLogLevel(2)  # errors only
+        cv2.setLogLevel(2)  # type: ignore[attr-defined]  # errors only
     except (ImportError, AttributeError):
         pass
 
