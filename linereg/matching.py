@@ -87,9 +87,17 @@ def match_segments(
     if len(lines2d) == 0 or len(lines3d) == 0:
         return np.zeros((0, 2), dtype=np.int64)
     projected, visible = project_segments(lines3d, camera, cam_from_world, config.min_depth_m)
+    # an inlier passes within distance_px of a point of its 2D segment: projections wholly beyond one side
+    # of the 2D segments' box (grown by distance_px) cannot match, which drops most of a large map
+    lo = lines2d.reshape(-1, 2).min(axis=0) - config.distance_px
+    hi = lines2d.reshape(-1, 2).max(axis=0) + config.distance_px
+    xs, ys = projected[:, 0::2], projected[:, 1::2]
+    outside = (xs < lo[0]).all(1) | (xs > hi[0]).all(1) | (ys < lo[1]).all(1) | (ys > hi[1]).all(1)
+    cols = np.flatnonzero(visible & ~outside)
+    projected = projected[cols]
     H, u, length, offset = _lines(lines2d)
     d1 = np.abs(H[:, :2] @ projected[:, 0:2].T + H[:, 2:3])
-    i, j = np.nonzero((d1 <= config.distance_px) & visible[None, :])
+    i, j = np.nonzero(d1 <= config.distance_px)
     d1 = d1[i, j]
     d2 = np.abs(H[i, 0] * projected[j, 2] + H[i, 1] * projected[j, 3] + H[i, 2])
     near = d2 <= config.distance_px
@@ -103,4 +111,4 @@ def match_segments(
     dist = 0.5 * (d1[keep] + d2[keep])
     order = np.lexsort((j, dist, i))  # by 2D segment, then distance, then lowest 3D index
     first = order[np.r_[True, i[order][1:] != i[order][:-1]]] if len(order) else order
-    return np.c_[i[first], j[first]].astype(np.int64).reshape(-1, 2)
+    return np.c_[i[first], cols[j[first]]].astype(np.int64).reshape(-1, 2)
