@@ -34,7 +34,8 @@ class Pairs:
     members: (M,) int64 3D indices sorted by group, group g's at ``members[starts[g]:starts[g + 1]]``.
     Per segment: ends (M, 6) rotated 3D endpoints ``R P1, R P2``; point (M, 3) their midpoints;
     plane (N, 3) plain interpretation normals of the 2D segments. For few pairs, also per pair:
-    plane_ij (P, 3) = plane[i] and plane_offset (P,) = plane[i] . point[j], else empty.
+    plane_ij (P, 3) = plane[i] and plane_offset (P,) = plane[i] . point[j], else empty. frames: per
+    3D cluster, what ``_near_pairs`` needs (``_cluster_frames``).
     """
 
     i: np.ndarray
@@ -54,6 +55,7 @@ class Pairs:
     plane: np.ndarray
     plane_ij: np.ndarray
     plane_offset: np.ndarray
+    frames: tuple = ()
 
     def coplanarity(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Returns ((K, 3) normal n, (K,) offset n . R P_j) of pairs ``index``: eq. "coplanar" n . t = -offset."""
@@ -114,25 +116,35 @@ def compatible_pairs(
     if len(i) <= _DIRECT_MAX_PAIRS:
         plane_ij = plane[i]
         plane_offset = np.einsum("pk,pk->p", plane_ij, point[j])
-    return Pairs(
-        i,
-        j,
-        g,
-        dirs,
-        K,
-        ci,
-        cg,
-        normal,
-        bearing,
-        turn,
-        members,
-        starts,
-        ends,
-        point,
-        plane,
-        plane_ij,
-        plane_offset,
-    )
+    frames = _cluster_frames(dirs, K, ci, cg, bearing, turn, members, starts)
+    parts = (i, j, g, dirs, K, ci, cg, normal, bearing, turn, members, starts, ends, point, plane)
+    return Pairs(*parts, plane_ij, plane_offset, frames)
+
+
+def _cluster_frames(
+    dirs: np.ndarray,
+    num_clusters: int,
+    ci: np.ndarray,
+    cg: np.ndarray,
+    bearing: np.ndarray,
+    turn: np.ndarray,
+    members: np.ndarray,
+    starts: np.ndarray,
+) -> tuple:
+    """Returns per 3D cluster with compatible 2D segments ``(J, seen, psi, turn, e1, e2)``.
+
+    J: its 3D members; seen: its 2D segments; psi: their bearing angles (rad) in the plane ``e1, e2``
+    normal to the cluster direction, from the mean bearing ``e1`` (no wrap-around near 0); turn: their
+    bearing turn per pixel.
+    """
+    frames = []
+    for g in np.flatnonzero(np.bincount(cg, minlength=len(dirs))[:num_clusters]):
+        sel = np.flatnonzero(cg == g)
+        e1 = _unit(bearing[sel].sum(axis=0))
+        e2 = cross(dirs[g][None, :], e1[None, :])[0]
+        psi = np.arctan2(bearing[sel] @ e2, bearing[sel] @ e1)
+        frames.append((members[starts[g] : starts[g + 1]], ci[sel], psi, turn[sel], e1, e2))
+    return tuple(frames)
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -223,22 +235,14 @@ def _near_pairs(pairs: Pairs, T: np.ndarray, distance_px: float) -> tuple[np.nda
     group the line angles are sorted once per translation and each segment looks up its window.
     """
     out = [_near_loose(pairs, T, distance_px)]
-    for g in np.flatnonzero(
-        np.bincount(pairs.combo_g, minlength=len(pairs.directions))[: pairs.num_clusters]
-    ):
-        J = pairs.members[pairs.starts[g] : pairs.starts[g + 1]]
-        sel = np.flatnonzero(pairs.combo_g == g)
-        seen, bearing = pairs.combo_i[sel], pairs.combo_bearing[sel]
-        a = pairs.directions[g]
-        e1 = _unit(bearing.sum(axis=0))  # angles measured from the mean bearing: no wrap near 0
-        e2 = np.cross(a, e1)
-        psi = np.arctan2(bearing @ e2, bearing @ e1)  # (n,)
-        tol = _ANGLE_SAFETY * distance_px * pairs.combo_turn[sel]
+    rows = 8.0 * np.arange(len(T))[:, None]  # angle rows apart by 8 > 2 pi: one sorted search for all T
+    for J, seen, psi, turn, e1, e2 in pairs.frames:
         x = pairs.point[J][None, :, :] + T[:, None, :]  # (H, m, 3)
-        phi = np.arctan2(x @ e2, x @ e1) + 8.0 * np.arange(len(T))[:, None]  # rows apart by 8 > 2 pi
+        phi = np.arctan2(x @ e2, x @ e1) + rows
         order = np.argsort(phi, axis=None)
         key = phi.ravel()[order]
-        q = psi[None, :] + 8.0 * np.arange(len(T))[:, None]  # (H, n)
+        q = psi[None, :] + rows  # (H, n)
+        tol = _ANGLE_SAFETY * distance_px * turn
         lo = np.searchsorted(key, (q - tol).ravel())
         hi = np.searchsorted(key, (q + tol).ravel())
         n = hi - lo
