@@ -1,0 +1,61 @@
+"""The public API's contract: shapes, types and the errors bad input gets (DESIGN.md, issue 2)."""
+
+import numpy as np
+import pytest
+
+import linereg
+from linereg.config import RegisterConfig
+
+
+def test_camera_validates_and_names_the_argument():
+    with pytest.raises(linereg.InvalidInputError, match="focal"):
+        linereg.Camera(fx=0, fy=800, cx=320, cy=240, width=640, height=480)
+    with pytest.raises(ValueError, match="cx"):
+        linereg.Camera(fx=800, fy=800, cx=float("nan"), cy=240, width=640, height=480)
+    with pytest.raises(linereg.InvalidInputError, match="width"):
+        linereg.Camera(fx=800, fy=800, cx=320, cy=240, width=0, height=480)
+    with pytest.raises(linereg.InvalidInputError, match="dist"):
+        linereg.Camera(fx=800, fy=800, cx=320, cy=240, width=640, height=480, dist=(0.1,))
+
+
+def test_camera_from_dict_names_missing_keys():
+    with pytest.raises(linereg.InvalidInputError, match="cam.json: missing key.*fy"):
+        linereg.Camera.from_dict({"fx": 1, "cx": 1, "cy": 1, "width": 2, "height": 2}, source="cam.json")
+
+
+@pytest.mark.parametrize(
+    ("lines2d", "lines3d", "match"),
+    [
+        (np.zeros((10, 3)), np.ones((10, 6)), "lines2d.*shape"),
+        (np.full((10, 4), np.nan), np.ones((10, 6)), "lines2d.*NaN"),
+        (np.random.default_rng(0).random((10, 4)), np.ones((10, 5)), "lines3d.*shape"),
+        (np.random.default_rng(0).random((2, 4)), np.random.default_rng(0).random((10, 6)), "lines2d.*at least"),
+        ("not an array", np.ones((10, 6)), "lines2d"),
+    ],
+)
+def test_register_rejects_malformed_input(camera, lines2d, lines3d, match):
+    with pytest.raises(linereg.InvalidInputError, match=match):
+        linereg.register(lines2d, lines3d, camera)
+
+
+def test_register_rejects_a_non_camera():
+    rng = np.random.default_rng(0)
+    with pytest.raises(linereg.InvalidInputError, match="camera"):
+        linereg.register(rng.random((10, 4)), rng.random((10, 6)), {"fx": 800})
+
+
+def test_config_from_dict_overrides_and_rejects_unknown_keys():
+    config = RegisterConfig.from_dict({"match": {"distance_px": 3.0}, "method": "ransac6"})
+    assert config.match.distance_px == 3.0 and config.method == "ransac6"
+    with pytest.raises(linereg.InvalidInputError, match=r"config\.match\.nope"):
+        RegisterConfig.from_dict({"match": {"nope": 1}})
+
+
+def test_lines_without_structure_fail_with_a_reason_not_an_exception(camera):
+    rng = np.random.default_rng(3)
+    lines2d = rng.uniform(0, 480, (40, 4))
+    lines3d = rng.uniform(-1, 1, (40, 6)) + [0, 0, 5, 0, 0, 5]
+    result = linereg.register(lines2d, lines3d, camera)
+    assert isinstance(result, linereg.Registration)
+    if not result.success:
+        assert result.reason
