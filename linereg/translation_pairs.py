@@ -206,6 +206,12 @@ def pair_matches(
         i, j = pairs.i[p], pairs.j[p]
     else:
         h, i, j = _near_pairs(pairs, T, match.distance_px)
+        x = pairs.point[j] + T[h]  # the same necessary plane test, on the near pairs only
+        keep = (
+            np.abs(np.einsum("pk,pk->p", pairs.plane[i], x))
+            <= match.distance_px / max(camera.fx, camera.fy) * x[:, 2]
+        )
+        h, i, j = h[keep], i[keep], j[keep]
     t = T[h]
     seg = lines2d[i]
     d = seg[:, 2:4] - seg[:, 0:2]
