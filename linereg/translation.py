@@ -77,7 +77,7 @@ def _empty() -> TranslationHypothesis:
 def scene_size(lines3d: np.ndarray) -> float:
     """Returns the bounding-box diagonal (m) of (M, 6) segments, the scale for 'clearly different'."""
     ends = lines3d.reshape(-1, 3)
-    return float(max(np.linalg.norm(ends.max(axis=0) - ends.min(axis=0)), 1e-9))
+    return max(float(np.linalg.norm(ends.max(axis=0) - ends.min(axis=0))), 1e-9)
 
 
 def refine_translation(
