@@ -5,8 +5,8 @@ interpretation plane (``translation_pairs``); each such pair gives one linear eq
 "coplanar": ``(R P + t) . n = 0``). ``"ransac"`` samples three pairs at a time as the paper does
 (``translation_ransac``); ``"search"`` (default) reads each pair as a whole-segment correspondence, which
 fixes t alone, and votes (``translation_search``). Both end the same way: the best hypotheses are
-polished by robust least squares on the coplanarity equations and scored with the shared inlier test
-(``matching.match_segments``), so ``num_inliers`` is the paper's inlier count.
+scored with the shared inlier test (``matching.match_segments``), so ``num_inliers`` is the paper's
+inlier count; "search" first polishes them by robust least squares on the coplanarity equations.
 """
 
 from __future__ import annotations
@@ -123,22 +123,24 @@ def finish(
 ) -> TranslationHypothesis:
     """Returns the hypothesis from candidate translations (H, 3) ranked by approximate scores (H,).
 
-    The best candidate is polished (least squares, re-match) and scored with ``match_segments``; so is
-    the best-scoring candidate whose camera centre lies clearly elsewhere (the runner-up; polished only
-    when close). Should the runner-up end with more inliers, the two swap.
+    The best candidate is polished ("search" only: least squares, re-match) and scored with
+    ``match_segments``; so is the best-scoring candidate whose camera centre lies clearly elsewhere (the
+    runner-up; polished only when close). Should the runner-up end with more inliers, the two swap.
     """
     T, scores = candidates
     if len(T) == 0:
         return _empty()
     order = np.argsort(-scores, kind="stable")
-    best_t, best = _polish(lines2d, lines3d, camera, R, pairs, T[order[0]], config.polish_rounds, match)
+    # the paper's RANSAC keeps its best sample as is (refinement comes later, section III-D)
+    polish = config.polish_rounds if config.method == "search" else 0
+    best_t, best = _polish(lines2d, lines3d, camera, R, pairs, T[order[0]], polish, match)
     far = config.distinct_fraction * scene_size(lines3d)
     # camera centres are -R^T t, so centre distances equal translation distances
     distinct = order[np.linalg.norm(T[order] - best_t, axis=1) > far]
     if len(distinct) == 0:
         return TranslationHypothesis(best_t, best, len(best), 0)
     # a distant second (under 2/3 of the best's score) cannot win: counted exactly, not polished
-    rounds = 1 if scores[distinct[0]] >= (2.0 / 3.0) * scores[order[0]] else 0
+    rounds = min(polish, 1) if scores[distinct[0]] >= (2.0 / 3.0) * scores[order[0]] else 0
     other_t, other = _polish(lines2d, lines3d, camera, R, pairs, T[distinct[0]], rounds, match)
     if len(other) > len(best):
         best_t, best, other = other_t, other, best
