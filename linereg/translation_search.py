@@ -35,9 +35,7 @@ def search_candidates(
     match: MatchConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((H, 3) translations, (H,) inlier counts) of the best voted hypotheses (may be empty)."""
-    T, depth = pair_hypotheses(
-        lines2d, lines3d, camera, R, pairs, config.seed_min_length_px, config.max_hypotheses
-    )
+    T, depth = pair_hypotheses(lines2d, camera, pairs, config.seed_min_length_px, config.max_hypotheses)
     if len(T) == 0:
         return np.zeros((0, 3)), np.zeros(0)
     cell = config.cell_fraction * float(np.partition(depth, len(depth) // 2)[len(depth) // 2])
@@ -46,18 +44,14 @@ def search_candidates(
 
 
 def pair_hypotheses(
-    lines2d: np.ndarray,
-    lines3d: np.ndarray,
-    camera: Camera,
-    R: np.ndarray,
-    pairs: Pairs,
-    min_length_px: float,
-    max_hypotheses: int = 1 << 62,
+    lines2d: np.ndarray, camera: Camera, pairs: Pairs, min_length_px: float, max_hypotheses: int = 1 << 62
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((H, 3) t, (H,) mean endpoint depth) of the pairs read as whole-segment correspondences.
 
     Solves ``a r2 - b r1 = R (P2 - P1)`` in least squares: ``a, b > 0`` matches P1 to r1 and P2 to r2,
     both negative the swapped order; mixed signs (a segment behind the camera) give no hypothesis.
+    Only 2D segments inside the image (not clipped) and at least min_length_px long seed; beyond
+    max_hypotheses pairs, the likeliest whole ones are kept.
     """
     lo, hi = _BORDER_PX, np.array([camera.width, camera.height]) - 1.0 - _BORDER_PX
     inside = np.all((lines2d[:, 0:2] > lo) & (lines2d[:, 0:2] < hi), axis=1)

@@ -79,7 +79,7 @@ def test_pair_hypothesis_is_exact_without_noise():
     for i, j in scene.true_matches[:10]:
         lines2d, lines3d = scene.lines2d[[i]], scene.lines3d[[j]]
         pairs = compatible_pairs(lines2d, lines3d, scene.camera, R, _no_clusters(1), 1.0)
-        T, depth = pair_hypotheses(lines2d, lines3d, scene.camera, R, pairs, 0.0)
+        T, depth = pair_hypotheses(lines2d, scene.camera, pairs, 0.0)
         if len(T):  # a segment clipped by the image border gives no hypothesis
             np.testing.assert_allclose(T[0], t, atol=1e-9)
             assert depth[0] > 0
