@@ -125,3 +125,14 @@ def test_bench_synthetic_reads_a_config_file(tmp_path):
     path.write_text('{"match": {"nope": 1}}')
     with pytest.raises(InvalidInputError, match="nope"):
         synthetic.options_from_args(parser.parse_args(["--config", str(path)]))
+
+
+def test_a_failing_scene_generator_is_recorded_not_fatal(monkeypatch):
+    def broken(rng):
+        raise RuntimeError("not yet")
+
+    monkeypatch.setattr(synthetic.synthetic, "building_scene", broken, raising=False)
+    options = synthetic.Options(trials=2, methods=("oracle",))
+    records = synthetic.run_cell(synthetic.Cell("building", 0.0, 0, 0.0, 0.0), options)
+    assert len(records) == 2 and not any(r["success"] for r in records)
+    assert "not yet" in records[0]["reason"]

@@ -14,6 +14,7 @@ import os
 import sys
 import tempfile
 import time
+from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -84,10 +85,8 @@ def failure_reasons(trials: Sequence[dict[str, Any]], top: int = 3) -> dict[str,
 
     A pose reported but outside the success criterion counts as "pose off" (it has no reason of its own).
     """
-    reasons = [t["reason"] or "pose off" for t in trials if not t["success"]]
-    values, counts = np.unique(reasons, return_counts=True) if reasons else ([], [])
-    order = np.argsort(-np.asarray(counts), kind="stable")[:top]
-    return {str(values[i]): int(counts[i]) for i in order}
+    reasons = Counter(t["reason"] or "pose off" for t in trials if not t["success"])
+    return dict(reasons.most_common(top))
 
 
 def _median(a: np.ndarray) -> float:

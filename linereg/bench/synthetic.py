@@ -127,10 +127,16 @@ def run_cell(cell: Cell, options: Options, progress: report.Progress | None = No
     """Returns one trial record per (trial, method) of a cell; all methods share each trial's scene."""
     records = []
     for trial in range(options.trials):
-        scene = cell.scene(np.random.default_rng([options.seed, trial]))
+        try:
+            scene: synthetic.Scene | None = cell.scene(np.random.default_rng([options.seed, trial]))
+        except Exception as e:  # a generator still being written must not end a long run: record it
+            log.warning("%s scene of trial %d failed: %s", cell.sweep, trial, e)
+            scene, failure = None, Registration(False, reason=f"scene generation: {type(e).__name__}: {e}")
         for method in options.methods:
-            result, seconds = run_method(method, scene, options.config)
-            errors = pose_errors(result.cam_from_world, scene.cam_from_world) if result.success else None
+            result, seconds = run_method(method, scene, options.config) if scene else (failure, 0.0)
+            errors = (
+                pose_errors(result.cam_from_world, scene.cam_from_world) if result.success and scene else None
+            )
             records.append(
                 report.trial_record(
                     method, trial, result.success, errors, seconds, result.num_inliers, result.reason
