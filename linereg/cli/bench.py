@@ -19,6 +19,7 @@ BENCHMARKS: dict[str, str] = {
     "service": "linereg.bench.service:configure",
     "lines2d": "linereg.bench.lines2d:configure",
     "lines3d": "linereg.bench.lines3d:configure",
+    "real": "linereg.bench.real:configure",
 }
 
 

@@ -1,0 +1,169 @@
+"""2D line detection time (LSD + merging) at 640x480 and 1920x1080 on rendered and real photos.
+
+``linereg bench lines2d [--images 5] [--repeats 5] [--data DIR] [--out DIR]``.
+
+Images: the demo scene's rendered photos at 640x480 and the same views at 1920x1080 (upscaled with bicubic
+interpolation: the same scene, so the line content is comparable), plus the photos of the real data folder
+(``bench real``'s ``--data``) at their own size and upscaled to 1920x1080. Each image is detected
+``--repeats`` times after one warm-up; the time is ``lines2d.detect`` (grey conversion, LSD, undistortion,
+merging, short-segment removal), split into LSD alone (``lines2d.lsd_segments`` on the grey image) and the
+rest. Targets (issue 3): <= 30 ms at 640x480, <= 150 ms at 1920x1080.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import report
+
+HD = (1920, 1080)
+TARGETS_MS = {(640, 480): 30.0, HD: 150.0}
+
+
+def camera_for(image: np.ndarray) -> Any:
+    """Returns a pinhole camera matching an image's size (intrinsics do not change detection time)."""
+    from ..camera import Camera
+
+    h, w = image.shape[:2]
+    return Camera(fx=0.9 * w, fy=0.9 * w, cx=(w - 1) / 2, cy=(h - 1) / 2, width=w, height=h)
+
+
+def upscale(image: np.ndarray, size: tuple[int, int] = HD) -> np.ndarray:
+    """Returns ``image`` resized to ``size`` (width, height) with bicubic interpolation."""
+    import cv2
+
+    return cv2.resize(image, size, interpolation=cv2.INTER_CUBIC)
+
+
+def demo_images(num_images: int, seed: int) -> Iterator[tuple[str, np.ndarray]]:
+    """Yields (source, image): the demo photos at their size, then the same photos at 1920x1080."""
+    from ..demo_scene import make_demo_scene
+
+    scene = make_demo_scene(seed=seed, num_images=num_images)
+    for image in scene.images:
+        yield "demo", image
+    for image in scene.images:
+        yield "demo upscaled", upscale(image)
+
+
+def real_images(data_dir: Path) -> Iterator[tuple[str, np.ndarray]]:
+    """Yields (source, image) for every photo of the real data folder, native size and 1920x1080."""
+    from .. import io
+    from .real import read_scene, scene_folders
+
+    for folder in scene_folders(data_dir):
+        for item in read_scene(folder):
+            image = io.read_image(item.image_path)
+            yield folder.name, image
+            yield f"{folder.name} upscaled", upscale(image)
+
+
+def time_image(image: np.ndarray, repeats: int) -> dict[str, Any]:
+    """Returns median milliseconds of ``detect`` and of LSD alone over ``repeats`` runs, and counts."""
+    from ..config import LineDetectConfig
+    from ..lines2d import detect, lsd_segments, to_gray8
+
+    camera, config = camera_for(image), LineDetectConfig()
+    segments = detect(image, camera, config)  # warm-up (and the count)
+    total, lsd = [], []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        detect(image, camera, config)
+        total.append(time.perf_counter() - start)
+        gray = to_gray8(image)
+        start = time.perf_counter()
+        raw = lsd_segments(gray, config)
+        lsd.append(time.perf_counter() - start)
+    return {
+        "detect_ms": 1e3 * float(np.median(total)),
+        "lsd_ms": 1e3 * float(np.median(lsd)),
+        "num_lsd": len(raw),
+        "num_segments": len(segments),
+    }
+
+
+def summarize(records: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Returns one row per (source, size): image count, median / p95 / max detect ms, LSD ms, segments."""
+    rows = []
+    for (source, size), group in report.by_key(records, "key").items():
+        ms = np.array([r["detect_ms"] for r in group])
+        target = TARGETS_MS.get(tuple(size), float("nan"))
+        rows.append(
+            {
+                "source": source,
+                "size": f"{size[0]}x{size[1]}",
+                "n": len(group),
+                "detect_ms_median": float(np.median(ms)),
+                "detect_ms_p95": float(np.percentile(ms, 95)),
+                "detect_ms_max": float(ms.max()),
+                "lsd_ms_median": float(np.median([r["lsd_ms"] for r in group])),
+                "segments_median": float(np.median([r["num_segments"] for r in group])),
+                "target_ms": target,
+                "met": "-" if np.isnan(target) else ("yes" if np.median(ms) <= target else "no"),
+            }
+        )
+    return rows
+
+
+COLUMNS = (
+    ("source", "source", ""),
+    ("size", "size", ""),
+    ("n", "n", "d"),
+    ("detect_ms_median", "detect ms med", ".1f"),
+    ("detect_ms_p95", "p95", ".1f"),
+    ("detect_ms_max", "max", ".1f"),
+    ("lsd_ms_median", "LSD ms med", ".1f"),
+    ("segments_median", "segments", ".0f"),
+    ("target_ms", "target ms", ".0f"),
+    ("met", "met (med)", ""),
+)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Adds the ``bench lines2d`` arguments and sets ``func=run``."""
+    from .real import DATA_ENV
+
+    parser.add_argument("--images", type=int, default=5, help="demo photos (default 5)")
+    parser.add_argument("--repeats", type=int, default=5, help="timed runs per image (default 5)")
+    parser.add_argument("--seed", type=int, default=0, help="demo scene seed (default 0)")
+    parser.add_argument(
+        "--data", type=Path, default=None, help=f"real data folder (default ${DATA_ENV} or ../shared/data)"
+    )
+    parser.add_argument("--out", type=Path, default=Path("bench-results/lines2d"), help="output directory")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Times detection on every image, prints the table, writes results.json; returns the exit code."""
+    from ..errors import InvalidInputError
+    from .real import default_data_dir
+
+    if args.images < 1 or args.repeats < 1:
+        raise InvalidInputError("--images and --repeats must be >= 1")
+    data = args.data if args.data is not None else default_data_dir()
+    records = []
+    for source, image in [*demo_images(args.images, args.seed), *real_images(data)]:
+        size = (image.shape[1], image.shape[0])
+        records.append(
+            {"source": source, "key": (source, size), "size": size} | time_image(image, args.repeats)
+        )
+    rows = summarize(records)
+    print(report.format_table(rows, COLUMNS))
+    print("detect = grey + LSD + undistort + merge + filter; median over repeats per image, then over images")
+    results = {
+        "benchmark": "lines2d",
+        "options": {"images": args.images, "repeats": args.repeats, "seed": args.seed, "data": str(data)},
+        "targets_ms": {f"{w}x{h}": t for (w, h), t in TARGETS_MS.items()},
+        "rows": rows,
+        "images": [{k: v for k, v in r.items() if k != "key"} for r in records],
+    }
+    path = report.write_json_atomic(args.out / "results.json", results)
+    print(f"wrote {path}", file=sys.stderr)
+    return 0

@@ -1,0 +1,268 @@
+"""3D line extraction: time and peak memory on a ~1 M-point demo scan, recall of the building's true edges.
+
+``linereg bench lines3d [--points 1000000] [--seed 0] [--out DIR]``.
+
+The demo building is scanned (``demo_scene``'s simulated terrestrial scanner) and the scan is cut to
+``--points`` points (random subset; when the scan has fewer, it is used whole and the table says so).
+``lines3d.extract`` runs in a child process, so its peak resident memory (``ru_maxrss``) is not inflated by
+this process (the scene, the renderer); the child's memory before extraction (Python, numpy, open3d, the
+points) is reported too. Targets (issue 3): <= 10 s and <= 4 GB for 1 M points.
+
+Recall: a true edge of the building (``Building.edges``) longer than ``--min-length-m`` (0.5) counts as
+recovered when extracted segments within 2 deg of its direction pass within 5 cm of at least half of it
+(sampled every 2 cm; distance point-to-segment). It is given over all such edges and over the ``scanned``
+ones (at least half of the edge has a scan point within 5 cm: an edge on a face no scanner saw cannot be
+found). Precision is the same test the other way round (extracted segments near a true edge). Target: >= 80 %.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from . import report
+
+TARGETS = {"seconds": 10.0, "peak_gb": 4.0, "recall": 0.8}
+DISTANCE_M = 0.05
+ANGLE_DEG = 2.0
+STEP_M = 0.02
+MIN_COVER = 0.5
+_CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(sys.argv[1], sys.argv[2])"
+
+
+def child_main(points_path: str, segments_path: str) -> None:
+    """Runs ``extract`` on the points of an .npy file; prints JSON (seconds, RSS KiB), saves the segments."""
+    import resource
+    import time
+
+    from ..lines3d import extract
+
+    points = np.load(points_path)
+    before_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    start = time.perf_counter()
+    segments = extract(points)
+    seconds = time.perf_counter() - start
+    peak_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss  # Linux: KiB
+    np.save(segments_path, segments)
+    print(json.dumps({"seconds": seconds, "rss_before_kib": before_kib, "peak_rss_kib": peak_kib}))
+
+
+def extract_in_child(points: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
+    """Returns ((M, 6) segments, {seconds, rss_before_gb, peak_gb}) of ``extract`` run in a fresh process."""
+    from ..errors import LineregError
+
+    with tempfile.TemporaryDirectory(prefix="linereg-bench-") as tmp:
+        points_path, segments_path = Path(tmp) / "points.npy", Path(tmp) / "segments.npy"
+        np.save(points_path, points)
+        proc = subprocess.run(
+            [sys.executable, "-c", _CHILD, str(points_path), str(segments_path)],
+            capture_output=True,
+            text=True,
+        )
+        if proc.returncode != 0:
+            raise LineregError(
+                f"extraction child failed (exit {proc.returncode}): {proc.stderr.strip()[-2000:]}"
+            )
+        stats = json.loads(proc.stdout.strip().splitlines()[-1])
+        segments = np.load(segments_path)
+    return segments, {
+        "seconds": stats["seconds"],
+        "rss_before_gb": stats["rss_before_kib"] / 2**20,
+        "peak_gb": stats["peak_rss_kib"] / 2**20,
+    }
+
+
+def coverage(
+    truth: np.ndarray, found: np.ndarray, distance_m: float = DISTANCE_M, angle_deg: float = ANGLE_DEG
+) -> np.ndarray:
+    """Returns (E,) the fraction of each (E, 6) true segment within ``distance_m`` of a parallel found one.
+
+    A point of a true segment (sampled every STEP_M) is covered when some (M, 6) found segment whose
+    direction is within ``angle_deg`` lies within ``distance_m`` of it (point-to-segment distance).
+    """
+    out = np.zeros(len(truth))
+    if not len(found):
+        return out
+    fa, fd = found[:, :3], found[:, 3:] - found[:, :3]
+    f_len = np.linalg.norm(fd, axis=1)
+    f_dir = fd / np.maximum(f_len, 1e-12)[:, None]
+    cos_min = np.cos(np.radians(angle_deg))
+    for e, seg in enumerate(truth):
+        d = seg[3:] - seg[:3]
+        length = float(np.linalg.norm(d))
+        u = d / max(length, 1e-12)
+        near = _near_line(fa, fd, seg[:3], u, distance_m) & (np.abs(f_dir @ u) >= cos_min)
+        if not near.any():
+            continue
+        samples = seg[:3] + np.linspace(0.0, 1.0, max(2, int(length / STEP_M) + 1))[:, None] * d
+        dist = _point_segment_distance(samples, fa[near], fd[near])
+        out[e] = float((dist.min(axis=1) <= distance_m).mean())
+    return out
+
+
+def _near_line(a: np.ndarray, d: np.ndarray, p0: np.ndarray, u: np.ndarray, radius: float) -> np.ndarray:
+    """Returns (M,) bool: does segment ``a + s d`` (s in [0, 1]) come within ``radius`` of line p0 + r u?"""
+    w = a - p0
+    w_perp = w - (w @ u)[:, None] * u  # the components across the line: distance is |w_perp + s d_perp|
+    d_perp = d - (d @ u)[:, None] * u
+    s = np.clip(
+        -np.einsum("mk,mk->m", w_perp, d_perp) / np.maximum(np.einsum("mk,mk->m", d_perp, d_perp), 1e-18),
+        0,
+        1,
+    )
+    return np.linalg.norm(w_perp + s[:, None] * d_perp, axis=1) <= radius
+
+
+def _point_segment_distance(points: np.ndarray, a: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """Returns (S, C) distances of (S, 3) points to (C,) segments ``a + s d``, s in [0, 1]."""
+    w = points[:, None, :] - a[None, :, :]
+    s = np.clip(np.einsum("sck,ck->sc", w, d) / np.maximum(np.einsum("ck,ck->c", d, d), 1e-18), 0.0, 1.0)
+    return np.linalg.norm(w - s[:, :, None] * d[None, :, :], axis=2)
+
+
+def scanned(edges: np.ndarray, cloud: np.ndarray, distance_m: float = DISTANCE_M) -> np.ndarray:
+    """Returns (E,) bool: has at least half of each (E, 6) edge a cloud point within ``distance_m``?"""
+    from scipy.spatial import cKDTree
+
+    tree = cKDTree(cloud)
+    out = np.zeros(len(edges), dtype=bool)
+    for e, seg in enumerate(edges):
+        n = max(2, int(np.linalg.norm(seg[3:] - seg[:3]) / (5 * STEP_M)) + 1)
+        samples = seg[:3] + np.linspace(0.0, 1.0, n)[:, None] * (seg[3:] - seg[:3])
+        dist, _ = tree.query(samples, distance_upper_bound=distance_m)
+        out[e] = np.isfinite(dist).mean() >= MIN_COVER
+    return out
+
+
+def recall_table(
+    building: Any, cloud: np.ndarray, segments: np.ndarray, min_length_m: float
+) -> list[dict[str, Any]]:
+    """Returns one row per edge kind and one for all: edges, scanned, recall over all and over scanned."""
+    from ..geometry import segment_lengths
+
+    long = segment_lengths(building.edges) > min_length_m
+    edges, kinds = building.edges[long], building.edge_kind[long]
+    recovered = coverage(edges, segments) >= MIN_COVER
+    seen = scanned(edges, cloud)
+    rows = []
+    for kind in [*dict.fromkeys(kinds.tolist()), "all"]:
+        mask = np.ones(len(edges), bool) if kind == "all" else kinds == kind
+        rows.append(
+            {
+                "kind": kind,
+                "edges": int(mask.sum()),
+                "scanned": int((mask & seen).sum()),
+                "recall": float(recovered[mask].mean()) if mask.any() else float("nan"),
+                "recall_scanned": float(recovered[mask & seen].mean())
+                if (mask & seen).any()
+                else float("nan"),
+            }
+        )
+    return rows
+
+
+def precision(building: Any, segments: np.ndarray, min_length_m: float) -> float:
+    """Returns the fraction of extracted segments longer than ``min_length_m`` lying on a true edge."""
+    from ..geometry import segment_lengths
+
+    long = segments[segment_lengths(segments) > min_length_m]
+    return float((coverage(long, building.edges) >= MIN_COVER).mean()) if len(long) else float("nan")
+
+
+def demo_scan(seed: int, num_points: int) -> tuple[Any, np.ndarray, np.ndarray]:
+    """Returns (building, the demo scan, a random subset of at most ``num_points`` of it)."""
+    from ..demo_scene import make_demo_scene
+
+    scene = make_demo_scene(seed=seed, num_images=1)
+    cloud = np.asarray(scene.cloud, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    subset = (
+        cloud
+        if len(cloud) <= num_points
+        else cloud[np.sort(rng.choice(len(cloud), num_points, replace=False))]
+    )
+    return scene.building, cloud, subset
+
+
+RECALL_COLUMNS = (
+    ("kind", "edge kind", ""),
+    ("edges", "edges", "d"),
+    ("scanned", "scanned", "d"),
+    ("recall", "recall", ".1%"),
+    ("recall_scanned", "recall (scanned)", ".1%"),
+)
+
+
+def configure(parser: argparse.ArgumentParser) -> None:
+    """Adds the ``bench lines3d`` arguments and sets ``func=run``."""
+    parser.add_argument("--points", type=int, default=1_000_000, help="points extracted (default 1000000)")
+    parser.add_argument("--seed", type=int, default=0, help="demo scene seed (default 0)")
+    parser.add_argument("--min-length-m", type=float, default=0.5, help="true edges longer than this count")
+    parser.add_argument("--out", type=Path, default=Path("bench-results/lines3d"), help="output directory")
+    parser.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Runs extraction in a child, scores the segments, prints the tables, writes results.json."""
+    from ..errors import InvalidInputError
+
+    if args.points < 1000:
+        raise InvalidInputError(f"--points must be >= 1000, got {args.points}")
+    print("scanning the demo building ...", file=sys.stderr, flush=True)
+    building, cloud, points = demo_scan(args.seed, args.points)
+    print(
+        f"extracting 3D lines from {len(points):,} points in a child process ...", file=sys.stderr, flush=True
+    )
+    segments, cost = extract_in_child(points)
+    rows = recall_table(building, points, segments, args.min_length_m)
+    prec = precision(building, segments, args.min_length_m)
+    print(report.format_table(rows, RECALL_COLUMNS))
+    every = rows[-1]
+    print()
+    print(f"points {len(points):,} (scan {len(cloud):,}) -> {len(segments):,} segments; precision {prec:.1%}")
+    checks = (
+        (
+            "time",
+            f"{cost['seconds']:.1f} s",
+            f"<= {TARGETS['seconds']:g} s",
+            cost["seconds"] <= TARGETS["seconds"],
+        ),
+        (
+            "peak RSS",
+            f"{cost['peak_gb']:.2f} GB",
+            f"<= {TARGETS['peak_gb']:g} GB",
+            cost["peak_gb"] <= TARGETS["peak_gb"],
+        ),
+        ("recall", f"{every['recall']:.1%}", ">= 80 %", every["recall"] >= TARGETS["recall"]),
+        (
+            "recall scanned",
+            f"{every['recall_scanned']:.1%}",
+            ">= 80 %",
+            every["recall_scanned"] >= TARGETS["recall"],
+        ),
+    )
+    for name, value, target, ok in checks:
+        print(f"{name:>15}: {value:>9}  target {target:<9} {'met' if ok else 'NOT met'}")
+    print(f"(child RSS before extraction: {cost['rss_before_gb']:.2f} GB)")
+    results = {
+        "benchmark": "lines3d",
+        "options": {"points": args.points, "seed": args.seed, "min_length_m": args.min_length_m},
+        "criterion": {"distance_m": DISTANCE_M, "angle_deg": ANGLE_DEG, "min_cover": MIN_COVER},
+        "targets": TARGETS,
+        "num_points": len(points),
+        "scan_points": len(cloud),
+        "num_segments": len(segments),
+        "cost": cost,
+        "recall": rows,
+        "precision": prec,
+    }
+    path = report.write_json_atomic(args.out / "results.json", results)
+    print(f"wrote {path}", file=sys.stderr)
+    return 0
