@@ -77,10 +77,9 @@ def to_library_prior(prior: protocols.Prior | None):
     """Returns the library's Prior for a wire prior (the wire one itself while the library has none)."""
     if prior is None:
         return None
-    import linereg
-
-    library_prior = getattr(linereg, "Prior", None)
-    if library_prior is None:
+    try:
+        from linereg import Prior as library_prior
+    except ImportError:  # the library's localization stage is not installed: the wire prior has its fields
         return prior
     if prior.position is not None:
         return library_prior(position=prior.position, radius_m=prior.radius_m)

@@ -157,33 +157,29 @@ class Service:
         try:
             req = protocols.decode_request(payload, limits)
         except ProtocolError as e:
-            self._answer(
-                query,
-                key,
-                start,
-                False,
-                error_bytes(e.code, e.message, protocols.request_id(payload)),
-                e.code,
-            )
+            request_id = protocols.request_id(payload)
+            reply = error_bytes(e.code, e.message, request_id)
+            self._answer(query, key, start, request_id, False, reply, e.code)
             return
-        deadline_ms = req.deadline_ms or limits.default_deadline_ms
+        deadline = start + (req.deadline_ms or limits.default_deadline_ms) / 1000.0
         job = Job(
-            payload,
-            start + deadline_ms / 1000.0,
-            lambda ok, b, c: self._answer(query, key, start, ok, b, c),
-            req.id,
+            payload, deadline, lambda ok, b, c: self._answer(query, key, start, req.id, ok, b, c), req.id
         )
         if self._draining:
             job.fail("busy", "service shutting down")
         elif not self.pool.submit(job):
             job.fail("busy", f"queue full ({self.config.queue_size} waiting)")
 
-    def _answer(self, query, key: str, start: float, ok: bool, payload: bytes, code: str) -> None:
+    def _answer(
+        self, query, key: str, start: float, request_id: str, ok: bool, payload: bytes, code: str
+    ) -> None:
+        """Sends the one reply of a localize query, counts it and logs it (one JSON line per request)."""
         outcome = ("ok" if protocols.decode_reply(payload).success else "not_localized") if ok else code
         latency_ms = (time.monotonic() - start) * 1000.0
         self.stats.record(outcome, latency_ms)
         self._reply(query, key, payload, ok)
-        log.info("reply", extra={"fields": {"outcome": outcome, "latency_ms": round(latency_ms, 3)}})
+        fields = {"id": request_id, "key": key, "outcome": outcome, "latency_ms": round(latency_ms, 3)}
+        log.info("reply", extra={"fields": fields})
 
     @staticmethod
     def _reply(query, key: str, payload: bytes, ok: bool = True) -> None:

@@ -16,6 +16,7 @@ import multiprocessing as mp
 import os
 import socket
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -48,6 +49,7 @@ def run(args: argparse.Namespace) -> int:
         "latency": bench_latency(30 if args.quick else 200),
         "throughput": bench_throughput(12 if args.quick else 40),
         "soak": bench_soak(soak, args.clients, args.garbage),
+        "real": bench_real(10 if args.quick else 30),
     }
     report.write_json_atomic(args.out / "results.json", results)
     print(summary(results))
@@ -127,20 +129,60 @@ def bench_throughput(n: int) -> dict:
     for workers in (1, 2):
         with _service(workers) as svc, Client(svc.config.listen[0], map_name="bench") as client:
             client.localize_segments(lines, camera)  # warm up
-            done = []
-
-            def loop(count: int, client=client, done=done) -> None:
-                for _ in range(count):
-                    done.append(client.localize_segments(lines, camera, timeout=30.0).success)
-
-            threads = [threading.Thread(target=loop, args=(n // 4,)) for _ in range(4)]
-            start = time.perf_counter()
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join()
-            rates[workers] = len(done) / (time.perf_counter() - start)
+            rates[workers] = _rate(lambda c=client: c.localize_segments(lines, camera, timeout=30.0), n)
     return {"cpu_s_per_query": CPU_S, "qps_1": rates[1], "qps_2": rates[2], "ratio": rates[2] / rates[1]}
+
+
+def bench_real(n: int) -> dict | None:
+    """Returns in-process vs service latency and 1 vs 2 worker throughput of the real library on the
+    paper's synthetic scene (segments in), or None while the library's LineMap is not available."""
+    try:
+        from linereg import LineMap, localize_segments
+        from linereg.synthetic import paper_scene
+    except ImportError:
+        return None
+    from service import Client
+
+    scene = paper_scene(np.random.default_rng(3))
+    line_map = LineMap.from_segments(scene.lines3d, name="real")
+    local = []
+    for _ in range(n):
+        start = time.perf_counter()
+        localize_segments(scene.lines2d, line_map, scene.camera)
+        local.append(time.perf_counter() - start)
+    path = Path(tempfile.mkdtemp()) / "lines3d.npy"
+    np.save(path, scene.lines3d)
+    out: dict = {"in_process_median_ms": 1e3 * float(np.median(local))}
+    for workers in (1, 2):
+        with _service(workers, "service.engine:load_segments_engine", (str(path), "real")) as svc:
+            with Client(svc.config.listen[0], map_name="real") as client:
+                client.localize_segments(scene.lines2d, scene.camera, timeout=60.0)  # warm up
+                if workers == 1:
+                    remote = []
+                    for _ in range(n):
+                        start = time.perf_counter()
+                        client.localize_segments(scene.lines2d, scene.camera, timeout=60.0)
+                        remote.append(time.perf_counter() - start)
+                    out["service_median_ms"] = 1e3 * float(np.median(remote))
+                out[f"qps_{workers}"] = _rate(
+                    lambda c=client: c.localize_segments(scene.lines2d, scene.camera), n
+                )
+    out["ratio"] = out["qps_2"] / out["qps_1"]
+    out["added_median_ms"] = out["service_median_ms"] - out["in_process_median_ms"]
+    return out
+
+
+def _rate(call, n: int, in_flight: int = 4) -> float:
+    """Returns calls per second of ``n`` calls made by ``in_flight`` threads."""
+    threads = [
+        threading.Thread(target=lambda: [call() for _ in range(n // in_flight)]) for _ in range(in_flight)
+    ]
+    start = time.perf_counter()
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    return (n // in_flight) * in_flight / (time.perf_counter() - start)
 
 
 def _rss_kb(pid: int) -> int:
@@ -240,6 +282,13 @@ def summary(results: dict) -> str:
         {"what": "  queries/s, p50 / p99 ms",
          "value": f"{soak['qps']:.0f}, {soak['latency_p50_ms']:.1f} / {soak['latency_p99_ms']:.1f}", "target": ""},
     ]  # fmt: skip
+    real = results.get("real")
+    if real:
+        rows += [
+            {"what": "real library (paper scene): added latency ms", "value": real["added_median_ms"], "target": ""},
+            {"what": "real library: throughput 2 / 1 workers", "value": real["ratio"], "target": ">= 1.7"},
+            {"what": "  queries/s with 1, 2 workers", "value": f"{real['qps_1']:.1f}, {real['qps_2']:.1f}", "target": ""},
+        ]  # fmt: skip
     for row in rows:
         row["value"] = f"{row['value']:.2f}" if isinstance(row["value"], float) else str(row["value"])
     return report.format_table(
