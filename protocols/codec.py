@@ -23,14 +23,14 @@ _DEFAULT_LIMITS = Limits()
 
 
 def _default(obj: object) -> object:
-    """Returns a msgpack-native stand-in for numpy scalars/arrays met in info/stats documents."""
+    """Returns a msgpack-native stand-in for numpy scalars/arrays (or a string) met in info/stats documents."""
     if isinstance(obj, np.ndarray):
         return obj.tolist()
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, tuple | set):
         return list(obj)
-    raise TypeError(f"cannot encode {type(obj).__name__}")
+    return str(obj)  # paths, enums, ... in map metadata: readable beats refusing the whole document
 
 
 def pack(kind: str, body: dict) -> bytes:

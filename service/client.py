@@ -25,6 +25,8 @@ from protocols.images import JPEG_MAGIC, PNG_MAGIC
 
 from .zconfig import DEFAULT_ENDPOINT, session_config
 
+RETRYABLE = ("busy", "timeout", "internal")
+
 
 class ServiceError(LineregError):
     """The service answered with an Error (``code`` from protocols.ERROR_CODES) or did not answer."""
@@ -39,7 +41,8 @@ class Client:
 
     ``connect``: router endpoint(s), default the config file's or tcp/127.0.0.1:7447; ``config_file``: a
     zenoh json5 file (TLS, credentials); ``balance``: send each request to one live instance's own key in turn (replicas); ``wait_s``: keep
-    trying to connect this long (a router that is starting).
+    trying to connect this long (a router that is starting); ``retries``: localize again (on the next
+    instance with ``balance``) after ``busy``, ``timeout`` or ``internal``.
     """
 
     def __init__(
@@ -50,6 +53,7 @@ class Client:
         mode: str | None = "client",
         balance: bool = False,
         wait_s: float = 0.0,
+        retries: int = 0,
     ) -> None:
         if connect is None:  # the config file's endpoints, else the default local router
             connect = () if config_file else DEFAULT_ENDPOINT
@@ -59,6 +63,7 @@ class Client:
         )
         self._map_name = map_name
         self.balance = balance  # spread requests over the instances' own keys (replicas)
+        self.retries = retries
         self._ids = itertools.count()
         self._prefix = f"{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self._instances: itertools.cycle | None = None
@@ -155,10 +160,17 @@ class Client:
         return keys.instance_localize_key(self.map_name, instance)
 
     def _localize(self, req: LocalizeRequest, timeout: float) -> Registration:
-        ok, payload = self.request(self._localize_key(), protocols.encode_request(req), timeout)
-        if not ok:
-            raise _error_of(payload)
-        return protocols.decode_reply(payload).to_registration()
+        payload = protocols.encode_request(req)
+        for attempt in range(self.retries + 1):
+            try:
+                ok, reply = self.request(self._localize_key(), payload, timeout)
+                if ok:
+                    return protocols.decode_reply(reply).to_registration()
+                raise _error_of(reply)
+            except ServiceError as e:  # with balance, a retry goes to the next instance
+                if e.code not in RETRYABLE or attempt == self.retries:
+                    raise
+        raise AssertionError("unreachable")
 
     def _document(self, key: str, timeout: float) -> dict:
         ok, payload = self.request(key, b"", timeout)
