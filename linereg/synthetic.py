@@ -4,6 +4,8 @@
   ``[-1, 1]^3``, projected into a 640x480, f = 800 camera with noise, 3D and 2D outliers.
 - ``building_scene``: edges of a procedural Manhattan building (``linereg.building``) seen from the street,
   with occlusion, fragmentation, partial segments and clutter.
+
+``linereg.building`` imports this module, so this one imports it only inside ``building_scene``.
 """
 
 from __future__ import annotations
@@ -90,6 +92,7 @@ def clip_to_image(lines2d: np.ndarray, camera: Camera) -> tuple[np.ndarray, np.n
     lo, hi = np.array([0.0, 0.0]), np.array([camera.width - 1.0, camera.height - 1.0])
     t0, t1 = clip_to_box(p, d, lo, hi, np.zeros(len(p)), np.ones(len(p)))
     keep = t0 < t1
+    t0, t1 = np.where(keep, t0, 0.0), np.where(keep, t1, 0.0)  # empty ones: no inf * 0
     return np.c_[p + t0[:, None] * d, p + t1[:, None] * d], keep
 
 
@@ -107,17 +110,18 @@ def project_visible(
 
 
 def random_image_segments(
-    rng: np.random.Generator, n: int, camera: Camera, lengths_px: np.ndarray
+    rng: np.random.Generator, n: int, camera: Camera, lengths_px: np.ndarray, top: float = 0.0
 ) -> np.ndarray:
     """Returns (n, 4) random segments in the image: uniform centre and angle, lengths drawn from lengths_px.
 
-    Segments that clipping leaves shorter than ``MIN_LENGTH_PX`` are redrawn.
+    Centres lie below ``top`` (a fraction of the image height); segments that clipping leaves shorter
+    than ``MIN_LENGTH_PX`` are redrawn.
     """
     out = np.zeros((0, 4))
     size = np.array([camera.width - 1.0, camera.height - 1.0])
     while len(out) < n:
         m = 2 * (n - len(out)) + 8
-        centre = rng.uniform(0.0, 1.0, size=(m, 2)) * size
+        centre = rng.uniform([0.0, top], [1.0, 1.0], size=(m, 2)) * size
         angle = rng.uniform(0.0, np.pi, size=m)
         half = 0.5 * rng.choice(lengths_px, size=m)[:, None] * np.c_[np.cos(angle), np.sin(angle)]
         seg, keep = clip_to_image(np.c_[centre - half, centre + half], camera)
@@ -214,4 +218,80 @@ def paper_scene(
     lengths = segment_lengths(seg) if len(seg) else np.array([50.0, 200.0])
     outliers = random_image_segments(rng, num_outliers(len(seg), outlier2d_fraction), camera, lengths)
     lines2d, matches = add_outliers_and_shuffle(rng, seg, inlier_j3d, outliers)
+    return Scene(lines2d, lines3d, camera, cam_from_world, matches)
+
+
+def fragment(
+    rng: np.random.Generator, lines2d: np.ndarray, partial: float = 0.3, split: float = 0.3
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((P, 4) pieces, (P,) int64 source row) of segments shortened and split like a detector's.
+
+    A fraction ``partial`` loses 0-25 % at each end; a fraction ``split`` of those of 80 px or more breaks
+    into 2 or 3 pieces with gaps of 5-15 % of the length. Pieces under ``MIN_LENGTH_PX`` are dropped.
+    """
+    pieces, source = [], []
+    for i, length in enumerate(segment_lengths(lines2d)):
+        a, b = (
+            (rng.uniform(0.0, 0.25), 1.0 - rng.uniform(0.0, 0.25)) if rng.uniform() < partial else (0.0, 1.0)
+        )
+        cuts = np.array([a, b])
+        if length >= 80.0 and rng.uniform() < split:
+            centres = np.sort(rng.uniform(a + 0.1, b - 0.1, size=rng.integers(1, 3)))
+            gaps = rng.uniform(0.025, 0.075, size=len(centres))
+            cuts = np.r_[a, np.ravel(np.c_[centres - gaps, centres + gaps]), b]
+        for lo, hi in cuts.reshape(-1, 2):
+            if hi > lo and (hi - lo) * length >= MIN_LENGTH_PX:
+                p, q = lines2d[i, 0:2], lines2d[i, 2:4]
+                pieces.append(np.r_[p + lo * (q - p), p + hi * (q - p)])
+                source.append(i)
+    return np.array(pieces, dtype=np.float64).reshape(-1, 4), np.array(source, dtype=np.int64)
+
+
+def _distractors(rng: np.random.Generator, blocks: np.ndarray, bounds: np.ndarray, n: int) -> np.ndarray:
+    """Returns (n, 6) street-level clutter segments (cars, poles, trees) outside the blocks, 0.5-3 m long."""
+    out = np.zeros((0, 6))
+    while len(out) < n:
+        p = rng.uniform([*bounds[0, :2], 0.0], [*bounds[1, :2], 4.0], size=(2 * n, 3))
+        inside = np.all(
+            (p[:, None] > blocks[None, :, 0] - 0.5) & (p[:, None] < blocks[None, :, 1] + 0.5), axis=2
+        )
+        p = p[~inside.any(axis=1)]
+        q = p + random_unit(rng, len(p)) * rng.uniform(0.5, 3.0, size=(len(p), 1))
+        out = np.r_[out, np.c_[p, q]]
+    return out[:n]
+
+
+def building_scene(
+    rng: np.random.Generator,
+    num_distractors: int = 50,
+    outlier2d_fraction: float = 0.2,
+    noise_px: float = 1.0,
+    camera: Camera | None = None,
+    config=None,
+) -> Scene:
+    """Returns a street-level view of a procedural building with its true pose and correspondences.
+
+    Choices:
+    - Map (``lines3d``): every building edge (``make_building(rng, config)``, hidden back facades
+      included) then ``num_distractors`` random street-level 3D segments (scanned clutter that the image
+      does not show: cars gone, trees), at rows ``len(building.edges):``.
+    - Camera: default ``building.street_camera()`` (640x480, f = 600), pose from ``camera_poses``.
+    - 2D: visible parts of the edges (frustum, occlusion by every face, longest visible run), >= 20 px,
+      then ``fragment`` (30 % shortened, 30 % of long ones split into 2-3 pieces), Gaussian endpoint noise
+      ``noise_px``; every piece is a true match of its edge.
+    - 2D outliers: clutter segments of 20-60 px, centres in the lower 60 % of the image (cars, trees),
+      making ``outlier2d_fraction`` of all 2D segments. Shuffled; ``true_matches`` sorted by i2d.
+    """
+    from .building import camera_poses, make_building, project_building, street_camera
+
+    camera = camera or street_camera()
+    building = make_building(rng, config)
+    cam_from_world = camera_poses(building, rng, 1, camera)[0]
+    seg, edge = project_building(building, camera, cam_from_world)
+    seg, source = fragment(rng, seg)
+    seg = seg + rng.normal(scale=noise_px, size=seg.shape)
+    lines3d = np.r_[building.edges, _distractors(rng, building.blocks, building.bounds, num_distractors)]
+    n_clutter = num_outliers(len(seg), outlier2d_fraction)
+    clutter = random_image_segments(rng, n_clutter, camera, np.linspace(20.0, 60.0, 41), top=0.4)
+    lines2d, matches = add_outliers_and_shuffle(rng, seg, edge[source], clutter)
     return Scene(lines2d, lines3d, camera, cam_from_world, matches)
