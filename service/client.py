@@ -101,14 +101,14 @@ class Client:
         """Returns the Registration of ``image`` ((H, W[, C]) uint8 array, PNG/JPEG bytes or a file path)."""
         data, fmt = encode_image(image)
         req = LocalizeRequest(self._next_id(), camera, data, fmt, None, wire_prior(prior),
-                              int(timeout * 1000), return_matches)  # fmt: skip
+                              _deadline_ms(timeout), return_matches)  # fmt: skip
         return self._localize(req, timeout)
 
     def localize_segments(self, lines2d, camera: Camera, prior=None, timeout: float = 10.0) -> Registration:
         """Returns the Registration of (N, 4) float64 pixel segments detected by the caller."""
         lines2d = np.asarray(lines2d, dtype=np.float64)
         req = LocalizeRequest(
-            self._next_id(), camera, None, "", lines2d, wire_prior(prior), int(timeout * 1000), True
+            self._next_id(), camera, None, "", lines2d, wire_prior(prior), _deadline_ms(timeout), True
         )
         return self._localize(req, timeout)
 
@@ -116,7 +116,7 @@ class Client:
         """Returns the Registration with the most inliers among every tile's answer (map split over instances)."""
         data, fmt = encode_image(image)
         req = LocalizeRequest(
-            self._next_id(), camera, data, fmt, None, wire_prior(prior), int(timeout * 1000), True
+            self._next_id(), camera, data, fmt, None, wire_prior(prior), _deadline_ms(timeout), True
         )
         key = keys.tile_localize_key(self.map_name, "*")
         replies = list(self.session.get(key, payload=protocols.encode_request(req), timeout=timeout))
@@ -177,6 +177,12 @@ class Client:
         if not ok:
             raise _error_of(payload)
         return protocols.unpack(payload)
+
+
+def _deadline_ms(timeout_s: float) -> int:
+    """Returns the request deadline for a client timeout: a little shorter, so the service's ``timeout``
+    error arrives before zenoh gives up on the query."""
+    return max(1, min(120_000, int(timeout_s * 1000 * 0.95)))
 
 
 def _open_retrying(conf: zenoh.Config, wait_s: float) -> zenoh.Session:
