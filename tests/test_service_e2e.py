@@ -55,3 +55,35 @@ def test_position_prior_travels(served):
     prior = linereg.Prior(position=center, radius_m=100.0)
     remote = client.localize_segments(scene.lines2d, scene.camera, prior=prior, timeout=60.0)
     assert remote.success or remote.reason
+
+
+def test_linereg_serve_cli_serves_a_saved_map(served, tmp_path):
+    import os
+    import signal
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    scene, _ = served
+    root = Path(__file__).resolve().parents[1]
+    path = tmp_path / "scene.lrmap"
+    linereg.LineMap.from_segments(scene.lines3d, name="saved").save(path)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    cmd = [sys.executable, "-m", "linereg", "serve", "--map", str(path), "--name", "saved", "--listen", endpoint,
+           "--workers", "1"]  # fmt: skip
+    proc = subprocess.Popen(
+        cmd, cwd=root, env=os.environ | {"PYTHONPATH": str(root)}, stderr=subprocess.DEVNULL
+    )
+    try:
+        with Client(endpoint, map_name="saved", wait_s=60.0) as client:
+            for _ in range(300):
+                if client.instances("saved", timeout=0.2):
+                    break
+            assert client.info()["name"] == "saved"
+            assert client.localize_segments(scene.lines2d, scene.camera, timeout=60.0).reason is not None
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=30) == 0
+    finally:
+        proc.kill()
