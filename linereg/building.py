@@ -166,10 +166,13 @@ def rect_minus(width: float, height: float, holes: np.ndarray) -> np.ndarray:
     inx = (cx[None, :] > holes[:, 0:1]) & (cx[None, :] < holes[:, 2:3])  # (H, nx)
     iny = (cy[None, :] > holes[:, 1:2]) & (cy[None, :] < holes[:, 3:4])  # (H, ny)
     free = ~np.einsum("hy,hx->yx", iny.astype(int), inx.astype(int)).astype(bool)
-    out, open_runs = [], {}
+    out: list[list[float]] = []
+    open_runs: dict[tuple[int, int], int] = {}  # run of cells -> row where it began
     for j in range(len(cy)):
         edges = np.diff(np.r_[0, free[j].astype(int), 0])
-        runs = set(zip(np.flatnonzero(edges == 1), np.flatnonzero(edges == -1), strict=True))
+        runs = set(
+            zip(np.flatnonzero(edges == 1).tolist(), np.flatnonzero(edges == -1).tolist(), strict=True)
+        )
         for run in set(open_runs) - runs:  # run ends below this row
             out.append([xs[run[0]], ys[open_runs.pop(run)], xs[run[1]], ys[j]])
         for run in runs - set(open_runs):
@@ -260,14 +263,14 @@ def _block_facades(footprint: np.ndarray) -> list[tuple[_Frame, float, bool]]:
     """Returns (frame, length, x-facing) of the 4 facades of a footprint; frame u = z x n runs CCW round it."""
     x0, y0, x1, y1 = footprint
     out = []
-    for n, corner, length in (
-        ((1.0, 0, 0), (x1, y0), y1 - y0),
-        ((0, 1.0, 0), (x1, y1), x1 - x0),
-        ((-1.0, 0, 0), (x0, y1), y1 - y0),
-        ((0, -1.0, 0), (x0, y0), x1 - x0),
+    for normal, corner, length in (
+        ((1.0, 0.0, 0.0), (x1, y0), y1 - y0),
+        ((0.0, 1.0, 0.0), (x1, y1), x1 - x0),
+        ((-1.0, 0.0, 0.0), (x0, y1), y1 - y0),
+        ((0.0, -1.0, 0.0), (x0, y0), x1 - x0),
     ):
-        n = np.array(n)
-        out.append((_Frame(np.array([*corner, 0.0]), np.cross(_Z, n), _Z, n), float(length), n[0] != 0))
+        n = np.array(normal)
+        out.append((_Frame(np.array([*corner, 0.0]), np.cross(_Z, n), _Z, n), float(length), bool(n[0] != 0)))
     return out
 
 
@@ -305,7 +308,9 @@ def make_building(rng: np.random.Generator, config: BuildingConfig | None = None
     lo, hi = footprints[:, :2].min(0) - cfg.ground_margin_m, footprints[:, 2:].max(0) + cfg.ground_margin_m
     ground = _Frame(np.array([*lo, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), _Z)
     holes = footprints - np.r_[lo, lo]
-    parts.face(_rect_quads(ground, rect_minus(*(hi - lo), holes)), "ground", -1)
+    parts.face(
+        _rect_quads(ground, rect_minus(float(hi[0] - lo[0]), float(hi[1] - lo[1]), holes)), "ground", -1
+    )
     faces = np.concatenate(parts.faces)
     blocks = np.stack(
         [np.c_[footprints[:, :2], np.zeros(len(footprints))], np.c_[footprints[:, 2:], heights]], 1
