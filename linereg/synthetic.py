@@ -11,6 +11,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -18,6 +19,9 @@ from .camera import Camera
 from .errors import InvalidInputError
 from .geometry import make_cam_from_world, segment_lengths
 from .matching import project_segments
+
+if TYPE_CHECKING:
+    from .building import BuildingConfig
 
 MIN_LENGTH_PX = 20.0  # shorter projections are dropped: LSD would not report them reliably either
 _MIN_DEPTH_M = 1e-3
@@ -267,7 +271,7 @@ def building_scene(
     outlier2d_fraction: float = 0.2,
     noise_px: float = 1.0,
     camera: Camera | None = None,
-    config=None,
+    config: BuildingConfig | None = None,
 ) -> Scene:
     """Returns a street-level view of a procedural building with its true pose and correspondences.
 
