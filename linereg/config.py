@@ -80,7 +80,9 @@ class TranslationConfig:
     seed_min_length_px: float = 20.0  # "search": shorter 2D segments give too vague a hypothesis
     num_verify: int = 32  # "search": at most this many of the fullest cells are scored with the inlier test,
     verify_fraction: float = 0.3  # ... those with at least this fraction of the fullest cell's votes
-    max_hypotheses: int = 20_000  # "search": on large maps only the longest 2D segments seed, up to this many
+    # "search": on large maps only the likeliest whole 2D segments (both ends at a corner, then one, then
+    # longest) seed, up to this many hypotheses
+    max_hypotheses: int = 20_000
     polish_rounds: int = 2  # "search": robust least squares on the coplanarity equations + re-match
     distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
     seed: int = 0
