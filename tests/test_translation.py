@@ -14,7 +14,7 @@ from linereg.parallel import parallel_clusters
 from linereg.synthetic import paper_scene
 from linereg.translation import estimate_translation
 from linereg.translation_pairs import compatible_pairs, pair_inliers, pair_matches
-from linereg.translation_search import pair_hypotheses
+from linereg.translation_search import _corner_ends, pair_hypotheses
 
 MATCH = MatchConfig()
 
@@ -170,3 +170,24 @@ def test_bearing_prefilter_finds_the_same_inliers_as_the_plane_prefilter():
         zip(*(a.tolist() for a in pair_matches(scene.lines2d, scene.camera, many, T, MATCH)), strict=True)
     )
     assert near <= direct and len(near) >= 0.95 * len(direct) > 0
+
+
+def test_search_works_without_clusters():
+    scene = _scene(0)[0]
+    R = scene.cam_from_world[:3, :3]
+    h = estimate_translation(
+        scene.lines2d,
+        scene.lines3d,
+        scene.camera,
+        R,
+        _no_clusters(len(scene.lines3d)),
+        TranslationConfig(),
+        MATCH,
+    )
+    assert _rel_error(h.t, scene) < 0.01  # every 3D segment is then its own direction group
+
+
+def test_corner_ends_counts_shared_endpoints():
+    lines2d = np.array([[0.0, 0.0, 100.0, 0.0], [101.0, 1.0, 100.0, 80.0], [300.0, 300.0, 350.0, 300.0]])
+    np.testing.assert_array_equal(_corner_ends(lines2d, 4.0), [1, 1, 0])
+    assert _corner_ends(np.array([[0.0, 0.0, 2.0, 0.0]]), 4.0)[0] == 0  # its own ends are not a corner
