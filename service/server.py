@@ -126,6 +126,9 @@ class Service:
         if self.session is None:
             return
         self._draining = True
+        if self._token is not None:  # clients choosing an instance by liveliness stop picking this one
+            self._token.undeclare()
+            self._token = None
         log.info(
             "draining", extra={"fields": {"queued": self.pool.jobs.qsize(), "in_flight": self.pool.in_flight}}
         )
