@@ -1,0 +1,309 @@
+"""3D line segments of an unorganised point cloud, in the spirit of Lu et al. 2019 ("Fast 3D line segment
+detection from unorganized point cloud"), the extractor the paper uses (section IV-A).
+
+Steps: shift to a local frame -> planar regions (``planes.segment_planes``) -> each region rasterised in its
+own plane, its contours traced and cut into straight runs -> intersection lines where two planes meet at a
+crease, clipped to where both regions reach it -> collinear pieces merged -> back to the input frame.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .config import Lines3DConfig
+from .errors import InvalidInputError
+from .planes import Planes, segment_planes, voxel_downsample
+
+logger = logging.getLogger(__name__)
+
+_MAX_TILT = np.tan(np.radians(3.0))  # the most a boundary line's angle is corrected from the points
+_MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
+
+
+def extract(points: np.ndarray, config: Lines3DConfig | None = None) -> np.ndarray:
+    """Returns (M, 6) float64 3D segments ``X1, Y1, Z1, X2, Y2, Z2`` of (P, 3) points, in their frame."""
+    config = config or Lines3DConfig()
+    points = check_points(points)
+    if len(points) == 0:
+        return np.zeros((0, 6))
+    # georeferenced coordinates (5e6 m) keep their precision only after a shift; min() is exact
+    offset = points.min(axis=0)
+    local = points - offset
+    if config.downsample_m > 0:
+        local = voxel_downsample(local, config.downsample_m)
+    planes = segment_planes(local, config)
+    return lines_from_planes(local, planes, config) + np.tile(offset, 2)
+
+
+def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig) -> np.ndarray:
+    """Returns (M, 6) float64 merged contour and crease segments of the regions of (P, 3) local points."""
+    if len(planes.counts) == 0:
+        return np.zeros((0, 6))
+    cell = config.cell_m if config.cell_m > 0 else max(2.0 * planes.spacing_m, 1e-3)
+    order = np.argsort(planes.labels, kind="stable")
+    bounds = np.searchsorted(planes.labels[order], np.arange(len(planes.counts) + 1))
+    members = [order[bounds[r] : bounds[r + 1]] for r in range(len(planes.counts))]
+    creases = crease_segments(points, planes, members, cell, config)
+    contours = [
+        contour_segments(points[idx], planes.normals[r], planes.centroids[r], cell, config)
+        for r, idx in enumerate(members)
+    ]
+    contour = drop_near(np.concatenate([np.zeros((0, 6)), *contours]), creases, 2.0 * cell, 10.0)
+    segments = np.concatenate([creases, contour])
+    # creases are exact plane intersections: they win over the (rasterised) contour along the same line
+    priority = np.r_[np.zeros(len(creases)), np.ones(len(contour))]
+    merged = merge_collinear(segments, priority, config)
+    logger.debug("%d crease + %d contour segments -> %d merged", len(creases), len(contour), len(merged))
+    return merged
+
+
+def check_points(points: object) -> np.ndarray:
+    """Returns (P, 3) float64 finite points, or raises InvalidInputError naming the problem."""
+    arr = np.asarray(points, dtype=np.float64)
+    if arr.ndim != 2 or arr.shape[1] != 3:
+        raise InvalidInputError(f"points must have shape (P, 3), got {arr.shape}")
+    if not np.isfinite(arr).all():
+        raise InvalidInputError("points must be finite (no NaN or inf)")
+    return arr
+
+
+def drop_near(segments: np.ndarray, reference: np.ndarray, distance: float, angle_deg: float) -> np.ndarray:
+    """Returns the (k, 6) segments that do not run along a reference segment: a region's contour along a
+    crease is the same edge as the crease's intersection line, only less exact."""
+    if len(segments) == 0 or len(reference) == 0:
+        return segments
+    r0, r1 = reference[:, :3], reference[:, 3:]
+    rlen = np.linalg.norm(r1 - r0, axis=1)
+    rdir = (r1 - r0) / rlen[:, None]
+    near = np.ones((len(segments), len(reference)), dtype=bool)
+    for end in (segments[:, :3], segments[:, 3:]):  # both endpoints within distance of the reference
+        t = np.clip(np.einsum("srj,rj->sr", end[:, None] - r0[None], rdir), -distance, rlen + distance)
+        near &= np.linalg.norm(end[:, None] - r0[None] - t[..., None] * rdir[None], axis=2) <= distance
+    sdir = segments[:, 3:] - segments[:, :3]
+    sdir /= np.linalg.norm(sdir, axis=1, keepdims=True)
+    near &= np.abs(sdir @ rdir.T) >= np.cos(np.radians(angle_deg))
+    return segments[~near.any(axis=1)]
+
+
+def plane_basis(normal: np.ndarray) -> np.ndarray:
+    """Returns (2, 3) in-plane unit axes; the first follows the world axis most parallel to the plane, so
+    facades and floors are rasterised axis-aligned (straight edges become straight pixel rows)."""
+    axis = np.eye(3)[np.argmin(np.abs(normal))]
+    e1 = axis - normal * (axis @ normal)
+    e1 /= np.linalg.norm(e1)
+    return np.stack([e1, np.cross(normal, e1)])
+
+
+def contour_segments(
+    points: np.ndarray, normal: np.ndarray, centroid: np.ndarray, cell: float, config: Lines3DConfig
+) -> np.ndarray:
+    """Returns (K, 6) segments along the boundary of one planar region of (n, 3) local points."""
+    basis = plane_basis(normal)
+    uv = (points - centroid) @ basis.T
+    extent = np.ptp(uv, axis=0) if len(uv) else np.zeros(2)
+    cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / _MAX_RASTER_PIXELS)))
+    lo = uv.min(axis=0) - 2 * cell  # a 2-cell empty border: contours never touch the image edge
+    ij = np.floor((uv - lo) / cell).astype(np.int64)
+    image = np.zeros((int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3), np.uint8)
+    image[ij[:, 1], ij[:, 0]] = 255
+    image = cv2.morphologyEx(image, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))  # sampling gaps
+    contours, _ = cv2.findContours(image, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+    min_cells = config.min_length_m / cell
+    lines2d = [
+        _straight_runs(c.reshape(-1, 2).astype(np.float64), image, min_cells, config) for c in contours
+    ]
+    lines2d_all = np.concatenate([np.zeros((0, 4)), *lines2d])
+    uv_lines = (lo + (lines2d_all.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
+    uv_lines = refine_edges(uv, uv_lines, 2.0 * cell)
+    xyz = centroid + uv_lines.reshape(-1, 2) @ basis
+    return xyz.reshape(-1, 6)
+
+
+def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
+    """Returns (k', 4) boundary lines moved from the raster (cell-quantised) to where the points end.
+
+    Points within ``band`` of an edge fill [-band, e] in the outward coordinate when the edge is at e,
+    so e = 2 * mean + band, unbiased for uniform sampling; done on each half of the segment, which also
+    corrects its angle; lines whose halves disagree are dropped. uv: (n, 2) region points in plane coordinates; lines: (k, 4) in the same.
+    """
+    if len(lines) == 0:
+        return lines
+    tree = cKDTree(uv)
+    out = lines.copy()
+    keep_line = np.ones(len(lines), dtype=bool)
+    for k, (a, b) in enumerate(lines.reshape(-1, 2, 2)):
+        length = np.linalg.norm(b - a)
+        d = (b - a) / length
+        m = np.array([-d[1], d[0]])
+        samples = a + np.outer(np.arange(0.0, length + band, band), d)
+        near = tree.query_ball_point(samples, 1.5 * band)
+        idx = np.unique(np.concatenate([np.zeros(0, np.int64), *near]).astype(np.int64))
+        t, s = (uv[idx] - a) @ d, (uv[idx] - a) @ m
+        keep = (np.abs(s) <= band) & (t >= band) & (t <= length - band)
+        t, s = t[keep], s[keep]
+        if len(s) < 10:
+            continue
+        outward = -np.sign(s.mean())  # the points lie on the inner side
+        halves = [t < length / 2, t >= length / 2]
+        if min(h.sum() for h in halves) < 5:
+            continue
+        e1, e2 = (np.clip(2.0 * np.mean(outward * s[h]) + band, -band, band) for h in halves)
+        if abs(e1 - e2) > 0.5 * band:  # the halves disagree: not one straight edge
+            keep_line[k] = False
+            continue
+        if abs(e1 - e2) > 0.5 * length * _MAX_TILT:  # short: the halves fix an offset, not an angle
+            e1 = e2 = 0.5 * (e1 + e2)
+        shift_a, shift_b = 1.5 * e1 - 0.5 * e2, 1.5 * e2 - 0.5 * e1  # line through (L/4, e1), (3L/4, e2)
+        out[k] = np.r_[a + outward * shift_a * m, b + outward * shift_b * m]
+    return out[keep_line]
+
+
+def _straight_runs(
+    contour: np.ndarray, image: np.ndarray, min_cells: float, config: Lines3DConfig
+) -> np.ndarray:
+    """Returns (k, 4) pixel segments fitted to the straight runs of one closed (n, 2) pixel contour."""
+    if len(contour) < max(min_cells, 4):
+        return np.zeros((0, 4))
+    poly = cv2.approxPolyDP(contour.astype(np.int32)[:, None, :], config.approx_cells, True).reshape(-1, 2)
+    vertex_idx = _vertex_indices(contour, poly)
+    out = []
+    n = len(contour)
+    for a, b in zip(vertex_idx, np.roll(vertex_idx, -1), strict=True):
+        run = contour[np.arange(a, a + (b - a) % n + 1) % n]
+        chord = np.linalg.norm(run[-1] - run[0])
+        # a run much longer than its chord turns a corner: the polygon cut it, it is no edge
+        if chord < min_cells or len(run) > 1.2 * chord + 2:
+            continue
+        core = run[2:-2] if len(run) > 8 else run  # corners round off: fit on the middle
+        centre = core.mean(axis=0)
+        direction = np.linalg.eigh(np.cov((core - centre).T))[1][:, -1]
+        ends = centre + np.outer((run[[0, -1]] - centre) @ direction, direction)
+        if _is_step(image, ends[0], ends[1]):
+            out.append(ends.ravel())
+    return np.array(out).reshape(-1, 4)
+
+
+def _is_step(image: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
+    """Returns whether the raster is filled on one side of pixel segment a-b and empty on the other, all
+    along it (a polygon side cutting a rounded corner or crossing a ragged patch is not an edge)."""
+    d = (b - a) / np.linalg.norm(b - a)
+    m = np.array([-d[1], d[0]])
+    along = a + np.outer(np.arange(1.0, np.linalg.norm(b - a) - 1.0), d)
+    filled = []
+    for side in (-1.5, 1.5):
+        xy = np.rint(along + side * m).astype(np.int64)
+        xy = np.clip(xy, 0, [image.shape[1] - 1, image.shape[0] - 1])
+        filled.append(np.mean(image[xy[:, 1], xy[:, 0]] > 0) if len(xy) else 0.0)
+    return max(filled) >= 0.75 and min(filled) <= 0.25
+
+
+def _vertex_indices(contour: np.ndarray, poly: np.ndarray) -> np.ndarray:
+    """Returns (k,) int64 positions in the contour of the polygon's vertices, in contour order."""
+    match = (contour[:, None, :] == poly[None, :, :]).all(axis=2)  # (n, k)
+    idx = [int(np.argmax(match[:, j])) for j in range(len(poly))]
+    return np.unique(idx)
+
+
+def crease_segments(
+    points: np.ndarray, planes: Planes, members: list[np.ndarray], cell: float, config: Lines3DConfig
+) -> np.ndarray:
+    """Returns (K, 6) plane-plane intersection segments of touching regions, clipped to where both have
+    points within 3 cells of the line (a crease has no boundary in the cloud, only two planes meeting)."""
+    out = []
+    min_sin = np.sin(np.radians(config.crease_min_angle_deg))
+    for a, b in planes.pairs:
+        na, nb = planes.normals[a], planes.normals[b]
+        direction = np.cross(na, nb)
+        if np.linalg.norm(direction) < min_sin:
+            continue
+        direction /= np.linalg.norm(direction)
+        # the point of the line nearest both centroids' planes: n_a.x = d_a, n_b.x = d_b, direction.x = mean
+        mid = 0.5 * (planes.centroids[a] + planes.centroids[b]) @ direction
+        rhs = [na @ planes.centroids[a], nb @ planes.centroids[b], mid]
+        origin = np.linalg.solve(np.stack([na, nb, direction]), rhs)
+        ta = _near_line(points[members[a]], origin, direction, 3 * cell)
+        tb = _near_line(points[members[b]], origin, direction, 3 * cell)
+        for t0, t1 in _common_runs(ta, tb, cell, config):
+            out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
+    return np.array(out).reshape(-1, 6)
+
+
+def _near_line(points: np.ndarray, origin: np.ndarray, direction: np.ndarray, radius: float) -> np.ndarray:
+    """Returns the (k,) line parameters of the points within ``radius`` of the line."""
+    t = (points - origin) @ direction
+    perp = points - origin - np.outer(t, direction)
+    return t[np.einsum("ij,ij->i", perp, perp) <= radius * radius]
+
+
+def _common_runs(
+    ta: np.ndarray, tb: np.ndarray, cell: float, config: Lines3DConfig
+) -> list[tuple[float, float]]:
+    """Returns the (t0, t1) intervals, at least min_length_m long, covered by both parameter sets."""
+    if len(ta) == 0 or len(tb) == 0:
+        return []
+    lo, hi = max(ta.min(), tb.min()), min(ta.max(), tb.max())
+    if hi - lo < config.min_length_m:
+        return []
+    nbins = int((hi - lo) / cell) + 1
+    occ_a = np.bincount(((ta[(ta >= lo) & (ta <= hi)] - lo) / cell).astype(np.int64), minlength=nbins) > 0
+    occ_b = np.bincount(((tb[(tb >= lo) & (tb <= hi)] - lo) / cell).astype(np.int64), minlength=nbins) > 0
+    both = _close_1d(occ_a & occ_b, max(int(config.collinear_gap_m / cell / 2), 1))
+    edges = np.diff(np.r_[0, both.astype(np.int8), 0])
+    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+    runs = [(lo + s * cell, min(lo + e * cell, hi)) for s, e in zip(starts, stops, strict=True)]
+    return [(t0, t1) for t0, t1 in runs if t1 - t0 >= config.min_length_m]
+
+
+def _close_1d(mask: np.ndarray, half: int) -> np.ndarray:
+    """Returns the (n,) boolean mask with gaps of up to 2 * half samples filled (1D morphological closing)."""
+    kernel = np.ones(2 * half + 1)
+    padded = np.r_[np.zeros(half), mask.astype(np.float64), np.zeros(half)]
+    dilated = (np.convolve(padded, kernel, "same") > 0).astype(np.float64)
+    eroded = (
+        np.convolve(np.r_[np.ones(half), dilated[half:-half], np.ones(half)], kernel, "same")
+        >= len(kernel) - 0.5
+    )
+    return eroded[half:-half]
+
+
+def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig) -> np.ndarray:
+    """Returns (K, 6) segments with collinear, overlapping or nearly touching pieces merged into one.
+
+    Seeds go by (priority, longest first); a seed keeps its own line and grows to cover the extent of
+    every segment within collinear_angle_deg, collinear_distance_m of it and collinear_gap_m along it.
+    """
+    if len(segments) == 0:
+        return np.zeros((0, 6))
+    p, q = segments[:, :3], segments[:, 3:]
+    lengths = np.linalg.norm(q - p, axis=1)
+    keep = lengths > 1e-9
+    p, q, lengths, priority = p[keep], q[keep], lengths[keep], priority[keep]
+    dirs = (q - p) / lengths[:, None]
+    cos_thr = np.cos(np.radians(config.collinear_angle_deg))
+    free = np.ones(len(p), dtype=bool)
+    out = []
+    for i in np.lexsort((-lengths, priority)):
+        if not free[i]:
+            continue
+        free[i] = False
+        t0, t1 = 0.0, lengths[i]
+        cand = np.flatnonzero(free & (np.abs(dirs @ dirs[i]) >= cos_thr))
+        tp, tq = (p[cand] - p[i]) @ dirs[i], (q[cand] - p[i]) @ dirs[i]
+        dp = np.linalg.norm(p[cand] - p[i] - np.outer(tp, dirs[i]), axis=1)
+        dq = np.linalg.norm(q[cand] - p[i] - np.outer(tq, dirs[i]), axis=1)
+        close = (dp <= config.collinear_distance_m) & (dq <= config.collinear_distance_m)
+        cand, lo, hi = cand[close], np.minimum(tp, tq)[close], np.maximum(tp, tq)[close]
+        grew = True
+        while grew:  # absorbing a piece may bring the next one within the gap
+            take = free[cand] & (lo <= t1 + config.collinear_gap_m) & (hi >= t0 - config.collinear_gap_m)
+            grew = bool(take.any())
+            if grew:
+                t0, t1 = min(t0, lo[take].min()), max(t1, hi[take].max())
+                free[cand[take]] = False
+        if t1 - t0 >= config.min_length_m:
+            out.append(np.r_[p[i] + t0 * dirs[i], p[i] + t1 * dirs[i]])
+    return np.array(out).reshape(-1, 6)

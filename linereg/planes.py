@@ -1,0 +1,259 @@
+"""Planar regions of a point cloud by region growing over voxel plane fits (Lu et al. 2019, section 3.1).
+
+Normals come from local PCA, one fit per occupied voxel (a cubic neighbourhood: as fast as a voxel hash,
+no per-point neighbour search). Planar voxels whose normals and offsets agree are grown into regions
+(connected components), near-coplanar adjacent regions are merged, then every point, including those in
+voxels straddling a crease, joins the adjacent region whose plane it lies on.
+All coordinates are local (the caller subtracts a georeferenced offset first).
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+
+from .config import Lines3DConfig
+
+logger = logging.getLogger(__name__)
+
+# the 13 "forward" offsets of the 26-neighbourhood; each adjacent pair is visited once
+_OFFSETS = np.array([o for o in itertools.product((-1, 0, 1), repeat=3) if o > (0, 0, 0)], dtype=np.int64)
+
+
+@dataclass(frozen=True)
+class Voxels:
+    """Occupied voxels: ``keys`` (V, 3) int64 sorted, ``of_point`` (P,) voxel of each point,
+    ``neighbors`` (V, 13) int64 index of the forward neighbour voxel or -1, plane fits of each voxel."""
+
+    keys: np.ndarray
+    of_point: np.ndarray
+    neighbors: np.ndarray
+    counts: np.ndarray  # (V,) int64
+    centroids: np.ndarray  # (V, 3)
+    normals: np.ndarray  # (V, 3) unit
+    curvature: np.ndarray  # (V,) lambda_min / sum(lambda), inf for too few points
+
+
+@dataclass(frozen=True)
+class Planes:
+    """Planar regions: ``labels`` (P,) int64 region of each point (-1: none), per region ``normals`` (R, 3),
+    ``centroids`` (R, 3), ``counts`` (R,), ``pairs`` (Q, 2) int64 regions that touch, and the estimated
+    point spacing on the surfaces ``spacing_m``."""
+
+    labels: np.ndarray
+    normals: np.ndarray
+    centroids: np.ndarray
+    counts: np.ndarray
+    pairs: np.ndarray
+    spacing_m: float
+
+
+def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """Returns (P', 3) float64 centroids of the points in each occupied voxel of size ``voxel_m``."""
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    _, inverse = np.unique(keys, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    counts = np.bincount(inverse).astype(np.float64)
+    return np.stack([np.bincount(inverse, points[:, i]) for i in range(3)], axis=1) / counts[:, None]
+
+
+def fit_planes(points: np.ndarray, group: np.ndarray, num_groups: int) -> tuple[np.ndarray, ...]:
+    """Returns (counts (G,), centroids (G, 3), normals (G, 3), curvature (G,)) of points grouped by (P,) ids.
+
+    Groups with fewer than 3 points get curvature inf. Curvature is the surface variation
+    lambda_0 / (lambda_0 + lambda_1 + lambda_2) of the group's covariance (0 on a perfect plane).
+    """
+    counts = np.bincount(group, minlength=num_groups).astype(np.float64)
+    safe = np.maximum(counts, 1.0)[:, None]
+    centroids = np.stack([np.bincount(group, points[:, i], num_groups) for i in range(3)], axis=1) / safe
+    d = points - centroids[group]  # centred first: sums of squares stay exact far from the origin
+    cov = np.empty((num_groups, 3, 3))
+    for i, j in itertools.combinations_with_replacement(range(3), 2):
+        cov[:, i, j] = cov[:, j, i] = np.bincount(group, d[:, i] * d[:, j], num_groups) / safe[:, 0]
+    eigval, eigvec = np.linalg.eigh(cov)
+    curvature = eigval[:, 0] / np.maximum(eigval.sum(axis=1), 1e-300)
+    curvature[counts < 3] = np.inf
+    return counts.astype(np.int64), centroids, eigvec[:, :, 0], curvature
+
+
+def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
+    """Returns the occupied voxels of (P, 3) local points with their plane fits and forward neighbours."""
+    keys = np.floor(points / voxel_m).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 3  # room for the +1 offsets
+    flat = np.ravel_multi_index((keys + 1).T, dims)
+    uniq, of_point = np.unique(flat, return_inverse=True)
+    of_point = of_point.ravel()
+    neighbors = np.full((len(uniq), len(_OFFSETS)), -1, dtype=np.int64)
+    vox = np.stack(np.unravel_index(uniq, dims), axis=1)
+    for k, offset in enumerate(_OFFSETS):
+        target = np.ravel_multi_index((vox + offset).T, dims)
+        pos = np.minimum(np.searchsorted(uniq, target), len(uniq) - 1)
+        neighbors[:, k] = np.where(uniq[pos] == target, pos, -1)
+    counts, centroids, normals, curvature = fit_planes(points, of_point, len(uniq))
+    return Voxels(vox - 1, of_point, neighbors, counts, centroids, normals, curvature)
+
+
+def _edges(voxels: Voxels) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the (E,) index pairs of 26-adjacent voxels."""
+    a = np.repeat(np.arange(len(voxels.keys)), voxels.neighbors.shape[1])
+    b = voxels.neighbors.ravel()
+    keep = b >= 0
+    return a[keep], b[keep]
+
+
+def _components(num: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(num, num))
+    return connected_components(graph, directed=False)[1]
+
+
+def grow_regions(voxels: Voxels, config: Lines3DConfig) -> np.ndarray:
+    """Returns (V,) int64 region label of each voxel (-1: not planar), by growing over similar neighbours."""
+    planar = (voxels.counts >= config.min_voxel_points) & (voxels.curvature <= config.max_curvature)
+    a, b = _edges(voxels)
+    a, b = a[planar[a] & planar[b]], b[planar[a] & planar[b]]
+    n, c = voxels.normals, voxels.centroids
+    cos_thr = np.cos(np.radians(config.angle_deg))
+    delta = c[b] - c[a]
+    ok = np.abs(np.einsum("ij,ij->i", n[a], n[b])) >= cos_thr
+    ok &= np.abs(np.einsum("ij,ij->i", n[a], delta)) <= config.distance_m
+    ok &= np.abs(np.einsum("ij,ij->i", n[b], delta)) <= config.distance_m
+    comp = _components(len(voxels.keys), a[ok], b[ok])
+    comp[~planar] = -1
+    return comp
+
+
+def _relabel(labels: np.ndarray, min_count: int) -> np.ndarray:
+    """Returns labels renumbered 0.. by decreasing size, groups smaller than ``min_count`` set to -1."""
+    valid = labels >= 0
+    counts = np.bincount(labels[valid]) if valid.any() else np.zeros(0, dtype=np.int64)
+    order = np.argsort(-counts, kind="stable")
+    new_of_old = np.full(len(counts), -1, dtype=np.int64)
+    kept = order[counts[order] >= min_count]
+    new_of_old[kept] = np.arange(len(kept))
+    out = np.full_like(labels, -1)
+    out[valid] = new_of_old[labels[valid]]
+    return out
+
+
+def _touching(voxels: Voxels, point_labels: np.ndarray) -> np.ndarray:
+    """Returns (Q, 3) int64 (region a < region b, count) of regions sharing a voxel or adjacent voxels."""
+    labelled = point_labels >= 0
+    vl = np.unique(np.stack([voxels.of_point[labelled], point_labels[labelled]], axis=1), axis=0)
+    same = vl[:-1, 0] == vl[1:, 0]  # one voxel holding two regions: a crease voxel
+    pairs = [np.stack([vl[:-1, 1][same], vl[1:, 1][same]], axis=1)]
+    # the majority region of each voxel, then 26-adjacent voxels with different majorities
+    major = _majority(voxels.of_point, point_labels, len(voxels.keys))
+    a, b = _edges(voxels)
+    pairs.append(np.stack([major[a], major[b]], axis=1))
+    pairs_all = np.concatenate(pairs)
+    pairs_all = pairs_all[(pairs_all >= 0).all(axis=1) & (pairs_all[:, 0] != pairs_all[:, 1])]
+    pairs_all.sort(axis=1)
+    uniq, count = np.unique(pairs_all, axis=0, return_counts=True)
+    return np.concatenate([uniq.reshape(-1, 2), count[:, None]], axis=1)
+
+
+def _merge_coplanar(
+    labels: np.ndarray, points: np.ndarray, voxels: Voxels, config: Lines3DConfig
+) -> np.ndarray:
+    """Returns point labels with adjacent near-coplanar regions merged (Lu et al.: region merging)."""
+    num = int(labels.max()) + 1
+    valid = labels >= 0
+    _, cen, nrm, _ = fit_planes(points[valid], labels[valid], num)
+    pairs = _touching(voxels, labels)[:, :2]
+    if len(pairs) == 0:
+        return labels
+    a, b = pairs[:, 0], pairs[:, 1]
+    ok = np.abs(np.einsum("ij,ij->i", nrm[a], nrm[b])) >= np.cos(np.radians(config.merge_angle_deg))
+    ok &= np.abs(np.einsum("ij,ij->i", nrm[a], cen[b] - cen[a])) <= config.merge_distance_m
+    ok &= np.abs(np.einsum("ij,ij->i", nrm[b], cen[a] - cen[b])) <= config.merge_distance_m
+    comp = _components(num, a[ok], b[ok])
+    out = labels.copy()
+    out[valid] = comp[labels[valid]]
+    return out
+
+
+def _assign_points(points: np.ndarray, voxels: Voxels, voxel_labels: np.ndarray, config: Lines3DConfig):
+    """Returns (P,) labels: each point joins the nearest plane (within distance_m) among the regions of its
+    own and its 26 neighbouring voxels; planes are fitted on the points of each region's planar voxels."""
+    num = int(voxel_labels.max()) + 1
+    seed = voxel_labels[voxels.of_point]
+    _, cen, nrm, _ = fit_planes(points[seed >= 0], seed[seed >= 0], num)
+    # both directions of the 13 forward offsets give the full 26-neighbourhood
+    back = np.full_like(voxels.neighbors, -1)
+    rows, cols = np.nonzero(voxels.neighbors >= 0)
+    back[voxels.neighbors[rows, cols], cols] = rows
+    around = np.concatenate([np.arange(len(voxels.keys))[:, None], voxels.neighbors, back], axis=1)
+    cand_of_voxel = np.where(around >= 0, voxel_labels[np.maximum(around, 0)], -1)
+    labels = np.full(len(points), -1, dtype=np.int64)
+    best = np.full(len(points), np.inf)
+    for col in range(cand_of_voxel.shape[1]):  # 27 passes over (P,) arrays: vectorised and memory-flat
+        cand = cand_of_voxel[voxels.of_point, col]
+        idx = np.flatnonzero(cand >= 0)
+        c = cand[idx]
+        dist = np.abs(np.einsum("ij,ij->i", points[idx] - cen[c], nrm[c]))
+        better = (dist < best[idx]) & (dist <= config.distance_m)
+        labels[idx[better]], best[idx[better]] = c[better], dist[better]
+    return labels
+
+
+def segment_planes(points: np.ndarray, config: Lines3DConfig | None = None) -> Planes:
+    """Returns the planar regions of (P, 3) float64 local points (metres), largest region first."""
+    config = config or Lines3DConfig()
+    voxels = build_voxels(points, config.voxel_m)
+    # sparse clouds: grow the voxels until a typical one holds enough points for a plane fit
+    voxel_m = config.voxel_m
+    while np.median(voxels.counts) < config.min_voxel_points and voxel_m < 4 * config.voxel_m:
+        voxel_m *= 1.5
+        voxels = build_voxels(points, voxel_m)
+    if voxel_m != config.voxel_m:
+        logger.info("sparse cloud: voxel size %.3f m instead of %.3f m", voxel_m, config.voxel_m)
+        config = replace(config, voxel_m=voxel_m)
+    voxel_labels = _relabel(grow_regions(voxels, config), 1)
+    if (voxel_labels < 0).all():
+        return _empty_planes(len(points))
+    labels = _assign_points(points, voxels, voxel_labels, config)
+    labels = _relabel(_merge_coplanar(labels, points, voxels, config), 1)
+    # re-assign against the merged planes so points follow the final plane fits
+    voxel_major = _majority(voxels.of_point, labels, len(voxels.keys))
+    labels = _relabel(_assign_points(points, voxels, voxel_major, config), config.min_region_points)
+    if (labels < 0).all():
+        return _empty_planes(len(points))
+    num = int(labels.max()) + 1
+    counts, cen, nrm, _ = fit_planes(points[labels >= 0], labels[labels >= 0], num)
+    pairs = _touching(voxels, labels)
+    logger.debug("%d voxels, %d regions, %d touching pairs", len(voxels.keys), num, len(pairs))
+    return Planes(labels, nrm, cen, counts, pairs[:, :2], _spacing(voxels, config))
+
+
+def _spacing(voxels: Voxels, config: Lines3DConfig) -> float:
+    """Returns the typical point spacing (m): a plane crossing a voxel covers about voxel_m**2 of it."""
+    planar = (voxels.counts >= config.min_voxel_points) & (voxels.curvature <= config.max_curvature)
+    counts = voxels.counts[planar] if planar.any() else np.maximum(voxels.counts, 1)
+    return float(config.voxel_m / np.sqrt(np.median(counts)))
+
+
+def _majority(of_point: np.ndarray, labels: np.ndarray, num_voxels: int) -> np.ndarray:
+    """Returns (V,) int64 the most frequent label among each voxel's points (-1 for none)."""
+    ok = labels >= 0
+    out = np.full(num_voxels, -1, dtype=np.int64)
+    if not ok.any():
+        return out
+    num = int(labels.max()) + 1
+    keys, votes = np.unique(of_point[ok] * num + labels[ok], return_counts=True)
+    voxel = keys // num
+    order = np.lexsort((votes, voxel))  # per voxel ascending votes: the last of each run wins
+    last = np.r_[voxel[order][1:] != voxel[order][:-1], True]
+    out[voxel[order][last]] = keys[order][last] % num
+    return out
+
+
+def _empty_planes(num_points: int) -> Planes:
+    empty = np.zeros((0, 3))
+    no_pairs = np.zeros((0, 2), np.int64)
+    return Planes(np.full(num_points, -1, dtype=np.int64), empty, empty, np.zeros(0, np.int64), no_pairs, 0.0)
