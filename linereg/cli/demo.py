@@ -1,8 +1,9 @@
 """``linereg demo``: the whole job on the built-in scene, no download.
 
 A procedural building is scanned (simulated terrestrial laser scanner) and photographed from known poses;
-the cloud becomes a line map, every photo is localized in it, and a table compares the poses with the truth.
-Overlays (photo, detected lines red, matched map lines green) go to ``--out``.
+the cloud becomes a line map, a localization service (zenoh on loopback, one worker process) loads it, every
+photo is sent to it as a PNG query, and a table compares the returned poses with the truth. Overlays (photo,
+detected lines red, matched map lines green, map grey) go to ``--out``. ``--in-process`` skips the service.
 """
 
 from __future__ import annotations
@@ -10,6 +11,8 @@ from __future__ import annotations
 import argparse
 import sys
 import time
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +29,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--out", type=Path, default=Path("linereg-demo"), help="overlay folder (default linereg-demo)"
     )
+    p.add_argument("--in-process", action="store_true", help="call linereg.localize directly, no service")
     p.set_defaults(func=run)
 
 
@@ -35,7 +39,6 @@ def run(args: argparse.Namespace) -> int:
     from ..geometry import pose_errors
     from ..linemap import LineMap
     from ..lines2d import detect
-    from ..localization import localize_segments
     from ..overlay import draw_overlay
 
     t0 = time.perf_counter()
@@ -44,22 +47,41 @@ def run(args: argparse.Namespace) -> int:
     say(f"  scan: {len(scene.cloud):,} points; building the line map ...")
     line_map = LineMap.build(scene.cloud, name="demo")
     say(f"  map: {len(line_map.segments):,} segments in {time.perf_counter() - t0:.1f} s")
-    progress = Progress(len(scene.images), "localize")
-    rows = []
-    for k, (image, truth) in enumerate(zip(scene.images, scene.cam_from_world, strict=True)):
-        lines2d = detect(image, scene.camera)
-        start = time.perf_counter()
-        result = localize_segments(lines2d, line_map, scene.camera)
-        ms = 1e3 * (time.perf_counter() - start)
-        errors = pose_errors(result.cam_from_world, truth) if result.success else (np.nan,) * 3
-        rows.append((k, result, errors, ms))
-        picture = draw_overlay(image, scene.camera, lines2d, line_map.segments, result)
-        io.write_image_atomic(args.out / f"demo_{k:02d}.png", picture)
-        progress.update(1, "ok" if result.success else "failed")
-    progress.close()
+    args.out.mkdir(parents=True, exist_ok=True)
+    map_path = args.out / "demo.linemap"
+    line_map.save(map_path)
+    with _localizer(map_path, line_map, args.in_process) as localize_image:
+        progress = Progress(len(scene.images), "localize")
+        rows = []
+        for k, (image, truth) in enumerate(zip(scene.images, scene.cam_from_world, strict=True)):
+            start = time.perf_counter()
+            result = localize_image(image, scene.camera)
+            ms = 1e3 * (time.perf_counter() - start)
+            errors = pose_errors(result.cam_from_world, truth) if result.success else (np.nan,) * 3
+            rows.append((k, result, errors, ms))
+            lines2d = detect(image, scene.camera)
+            picture = draw_overlay(image, scene.camera, lines2d, line_map.segments, result)
+            io.write_image_atomic(args.out / f"demo_{k:02d}.png", picture)
+            progress.update(1, "ok" if result.success else "failed")
+        progress.close()
     print_table(rows)
     say(f"overlays in {args.out}/   whole demo {time.perf_counter() - t0:.1f} s")
     return 0
+
+
+@contextmanager
+def _localizer(map_path: Path, line_map, in_process: bool) -> Iterator[Callable]:
+    """Yields ``localize(image, camera) -> Registration``: through a loopback service, or in this process."""
+    if in_process:
+        from ..localization import localize
+
+        yield lambda image, camera: localize(image, line_map, camera)
+        return
+    from service.local import local_service  # the service layer, imported only by this entry point
+
+    say("  starting the localization service on loopback ...")
+    with local_service(str(map_path), workers=1) as client:
+        yield lambda image, camera: client.localize(image, camera, timeout=60.0)
 
 
 def print_table(rows: list) -> None:
