@@ -1,0 +1,208 @@
+"""2D line segments of an image: OpenCV LSD, undistortion, merging of collinear fragments (paper III).
+
+The paper runs LSD (von Gioi 2008), then merges adjacent collinear segments and removes short isolated
+ones. Thresholds scale with the image diagonal so one config serves 640x480 and 4K alike.
+"""
+
+from __future__ import annotations
+
+import itertools
+import logging
+import math
+
+import cv2
+import numpy as np
+from scipy.spatial import cKDTree
+
+from .camera import Camera
+from .config import LineDetectConfig
+from .errors import InvalidInputError
+from .geometry import segment_directions, segment_lengths
+
+log = logging.getLogger(__name__)
+
+_FLOAT_DTYPES = (np.float16, np.float32, np.float64)
+
+
+def detect(image: np.ndarray, camera: Camera, config: LineDetectConfig | None = None) -> np.ndarray:
+    """Returns (N, 4) float64 segments ``x1, y1, x2, y2`` in undistorted pixels of ``camera``.
+
+    image: (H, W) grey, (H, W, 3) BGR or (H, W, 4) BGRA; uint8, uint16 or float, with ``H, W`` equal to
+    ``camera.height, camera.width``.
+    """
+    config = config or LineDetectConfig()
+    gray = to_gray8(image)
+    if gray.shape != (camera.height, camera.width):
+        raise InvalidInputError(
+            f"image is {gray.shape[1]}x{gray.shape[0]} px but the camera is {camera.width}x{camera.height}"
+        )
+    segments = lsd_segments(gray, config)
+    if camera.has_distortion and len(segments):
+        segments = camera.undistort_points(segments.reshape(-1, 2)).reshape(-1, 4)
+    diagonal = math.hypot(camera.width, camera.height)
+    merged = merge_collinear(segments, config.merge_gap_frac * diagonal, config)
+    kept = merged[segment_lengths(merged) >= config.min_length_frac * diagonal]
+    log.debug("lines2d: %d LSD segments, %d merged, %d kept", len(segments), len(merged), len(kept))
+    return kept
+
+
+def to_gray8(image: np.ndarray) -> np.ndarray:
+    """Returns the (H, W) uint8 grey version of an image; 16-bit and float are stretched robustly."""
+    if not isinstance(image, np.ndarray):
+        raise InvalidInputError(f"image must be a numpy array, got {type(image).__name__}")
+    if image.dtype not in (np.uint8, np.uint16, *_FLOAT_DTYPES):
+        raise InvalidInputError(f"image dtype must be uint8, uint16 or float, got {image.dtype}")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim not in (2, 3) or (image.ndim == 3 and image.shape[2] not in (3, 4)) or 0 in image.shape:
+        raise InvalidInputError(f"image must be (H, W), (H, W, 3) or (H, W, 4), got shape {image.shape}")
+    if image.dtype.kind == "f":
+        image = image.astype(np.float32, copy=False)  # cvtColor takes 8U, 16U and 32F only
+    if image.ndim == 3:
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        image = cv2.cvtColor(np.ascontiguousarray(image), code)
+    if image.dtype == np.uint8:
+        return image
+    if image.dtype.kind == "f":
+        if not np.isfinite(image).all():
+            raise InvalidInputError("image holds NaN or infinite values")
+        lo, hi = float(image.min()), float(image.max())
+        if lo >= 0.0 and hi <= 1.0:
+            return (image * 255.0 + 0.5).astype(np.uint8)
+        if lo >= 0.0 and hi <= 255.0:
+            return (image + 0.5).astype(np.uint8)
+    return _stretch(image)
+
+
+def _stretch(gray: np.ndarray) -> np.ndarray:
+    """Returns uint8 of a grey image mapped linearly from its 0.5 / 99.5 percentiles to 0 / 255.
+
+    Percentiles (not min/max) so that a few hot pixels of a 16-bit sensor do not squash the contrast;
+    taken on every 4th pixel, which is plenty for two quantiles and keeps 4K images cheap.
+    """
+    lo, hi = np.percentile(gray[::4, ::4], [0.5, 99.5])
+    scale = 255.0 / max(float(hi - lo), 1e-12)
+    out = (gray.astype(np.float32) - np.float32(lo)) * np.float32(scale)
+    return np.clip(out + 0.5, 0.0, 255.0).astype(np.uint8)
+
+
+def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
+    """Returns (N, 4) float64 LSD segments in pixels (pixel (0, 0) centred at 0) of a (H, W) uint8 image."""
+    scale = min(config.lsd_scale, math.sqrt(config.max_work_pixels / gray.size))
+    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(gray)[0]
+    if found is None:
+        return np.zeros((0, 4))
+    segments = np.asarray(found, dtype=np.float64).reshape(-1, 4)  # OpenCV 4: (N, 1, 4); OpenCV 5: (N, 4)
+    # OpenCV divides subsampled coordinates by the scale without the half-pixel shift of the resize,
+    # which moves every edge by 0.5 / scale - 0.5 px towards the origin (0.21 px at 0.7); undo it.
+    return segments + (0.5 / scale - 0.5)
+
+
+def merge_collinear(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig) -> np.ndarray:
+    """Returns (K, 4) float64 segments, K <= N, with collinear fragments of (N, 4) ``lines2d`` joined.
+
+    Two segments merge when their directions differ by less than ``merge_angle_deg``, all four endpoints
+    lie within ``merge_offset_px`` of the joint line and the gap between them along it is below ``gap_px``
+    (paper: merging step). Each round joins disjoint pairs, best (smallest gap) first, so chains of
+    fragments collapse in a few rounds; it stops when a round merges nothing. A round leaves no
+    mergeable pair of untouched segments behind, so later rounds only search around the new ones.
+    """
+    segments = np.asarray(lines2d, dtype=np.float64).reshape(-1, 4)
+    new = None
+    for _ in range(config.max_merge_rounds):
+        pairs = candidate_pairs(segments, gap_px, config, new)
+        if len(pairs) == 0:
+            break
+        merged, ok, gap = _join(segments, pairs, config)
+        ok &= gap <= gap_px
+        pick = _disjoint_best(pairs[ok], gap[ok])
+        if len(pick) == 0:
+            break
+        used = np.zeros(len(segments), dtype=bool)
+        used[pairs[ok][pick].ravel()] = True
+        segments = np.concatenate([segments[~used], merged[ok][pick]])
+        new = np.arange(len(segments) - len(pick), len(segments))
+    return segments
+
+
+def candidate_pairs(
+    lines2d: np.ndarray, gap_px: float, config: LineDetectConfig, among: np.ndarray | None = None
+) -> np.ndarray:
+    """Returns (C, 2) int64 index pairs ``i < j`` of segments that may be collinear and adjacent.
+
+    A k-d tree over (angle, offset of the line from the point set's centre) finds near-collinear pairs
+    in O(N log N); pairs whose extents are farther apart than ``gap_px`` are dropped. ``_join`` decides.
+    ``among``: (K,) int indices; if given, only pairs with at least one of them are returned.
+    """
+    if len(lines2d) < 2:
+        return np.zeros((0, 2), dtype=np.int64)
+    angle_rad = math.radians(config.merge_angle_deg)
+    d = segment_directions(lines2d)
+    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
+    mid = 0.5 * (lines2d[:, 0:2] + lines2d[:, 2:4])
+    centre = mid.mean(axis=0)
+    radius = float(np.linalg.norm(mid - centre, axis=1).max()) + 1.0
+    rho = -np.sin(theta) * (mid[:, 0] - centre[0]) + np.cos(theta) * (mid[:, 1] - centre[1])
+    # offsets of two fragments of one line differ by the endpoint noise plus angle error x lever arm
+    rho_tol = 2.0 * config.merge_offset_px + angle_rad * radius
+    # angles wrap at pi, where the normal and so the offset flip sign: add mirrored copies
+    wrap = np.flatnonzero(theta > np.pi - angle_rad)
+    keys = np.c_[np.r_[theta, theta[wrap] - np.pi] / angle_rad, np.r_[rho, -rho[wrap]] / rho_tol]
+    owner = np.r_[np.arange(len(lines2d)), wrap]
+    tree = cKDTree(keys)
+    if among is None:
+        pairs = owner[tree.query_pairs(1.0, p=np.inf, output_type="ndarray")]
+    else:
+        rows = np.flatnonzero(np.isin(owner, among))
+        hits = tree.query_ball_point(keys[rows], 1.0, p=np.inf)
+        counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
+        found = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
+        pairs = np.c_[np.repeat(owner[rows], counts), owner[found]]
+    pairs = np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1).astype(np.int64)
+    code = np.unique(pairs[:, 0] * len(lines2d) + pairs[:, 1])  # mirrored copies repeat some pairs
+    pairs = np.c_[code // len(lines2d), code % len(lines2d)]
+    half = 0.5 * segment_lengths(lines2d)
+    apart = np.linalg.norm(mid[pairs[:, 0]] - mid[pairs[:, 1]], axis=1)
+    return pairs[apart <= half[pairs[:, 0]] + half[pairs[:, 1]] + gap_px]
+
+
+def _join(
+    lines2d: np.ndarray, pairs: np.ndarray, config: LineDetectConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ((C, 4) joint segments, (C,) bool mergeable, (C,) gap px, negative for overlap) of pairs.
+
+    The joint line passes through the length-weighted centroid of both midpoints along the
+    length-weighted mean direction; it spans the extreme projections of the four endpoints.
+    """
+    a, b = lines2d[pairs[:, 0]], lines2d[pairs[:, 1]]
+    wa, wb = segment_lengths(a)[:, None], segment_lengths(b)[:, None]
+    da, db = segment_directions(a), segment_directions(b)
+    cos = np.einsum("ij,ij->i", da, db)
+    db = db * np.where(cos < 0, -1.0, 1.0)[:, None]
+    u = wa * da + wb * db
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    # keep the longer fragment's orientation (LSD's gradient polarity) for the joint segment
+    u *= np.where(np.einsum("ij,ij->i", u, np.where(wa >= wb, da, db)) < 0, -1.0, 1.0)[:, None]
+    c = (wa * (a[:, 0:2] + a[:, 2:4]) + wb * (b[:, 0:2] + b[:, 2:4])) / (2.0 * (wa + wb))
+    ends = np.concatenate([a, b], axis=1).reshape(-1, 4, 2) - c[:, None, :]
+    along = np.einsum("ikj,ij->ik", ends, u)
+    off = np.abs(ends[:, :, 0] * u[:, None, 1] - ends[:, :, 1] * u[:, None, 0]).max(axis=1)
+    lo_a, hi_a = along[:, 0:2].min(axis=1), along[:, 0:2].max(axis=1)
+    lo_b, hi_b = along[:, 2:4].min(axis=1), along[:, 2:4].max(axis=1)
+    gap = np.maximum(lo_a, lo_b) - np.minimum(hi_a, hi_b)
+    lo, hi = along.min(axis=1, keepdims=True), along.max(axis=1, keepdims=True)
+    merged = np.c_[c + lo * u, c + hi * u]
+    ok = (np.abs(cos) >= math.cos(math.radians(config.merge_angle_deg))) & (off <= config.merge_offset_px)
+    return merged, ok, gap
+
+
+def _disjoint_best(pairs: np.ndarray, score: np.ndarray) -> np.ndarray:
+    """Returns indices into ``pairs`` of a greedy set of disjoint pairs, lowest score first."""
+    used: set[int] = set()
+    pick = []
+    for k in np.argsort(score, kind="stable"):
+        i, j = int(pairs[k, 0]), int(pairs[k, 1])
+        if i not in used and j not in used:
+            used.update((i, j))
+            pick.append(k)
+    return np.asarray(pick, dtype=np.int64)
