@@ -120,6 +120,19 @@ class Ransac6Config:
 
 
 @dataclass(frozen=True)
+class LineDetectConfig:
+    """2D segments: OpenCV LSD, then merging of collinear fragments and removal of short isolated ones."""
+
+    lsd_scale: float = 0.7  # LSD's Gaussian subsampling (OpenCV default 0.8): lower is faster, fewer fragments
+    max_work_pixels: int = 600_000  # bigger images are subsampled further so LSD sees at most this many pixels
+    merge_angle_deg: float = 3.0  # fragments whose directions differ by more are not one line
+    merge_offset_px: float = 1.5  # every fragment endpoint must lie within this of the merged line
+    merge_gap_frac: float = 0.02  # largest gap bridged, fraction of the image diagonal (paper: 60 px)
+    max_merge_rounds: int = 10  # merging repeats until stable or this many rounds
+    min_length_frac: float = 0.025  # shorter segments left after merging are dropped (paper: 80 px)
+
+
+@dataclass(frozen=True)
 class RegisterConfig:
     """Everything ``register`` needs; ``method="ransac6"`` runs the paper's baseline instead."""
 
