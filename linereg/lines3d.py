@@ -9,6 +9,7 @@ crease, clipped to where both regions reach it -> collinear pieces merged -> bac
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -20,12 +21,17 @@ from .planes import Planes, segment_planes, voxel_downsample
 
 logger = logging.getLogger(__name__)
 
-_MAX_TILT = np.tan(np.radians(3.0))  # the most a boundary line's angle is corrected from the points
+_MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
 _MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
 
 
-def extract(points: np.ndarray, config: Lines3DConfig | None = None) -> np.ndarray:
-    """Returns (M, 6) float64 3D segments ``X1, Y1, Z1, X2, Y2, Z2`` of (P, 3) points, in their frame."""
+def extract(
+    points: np.ndarray, config: Lines3DConfig | None = None, progress: Callable[[str], None] | None = None
+) -> np.ndarray:
+    """Returns (M, 6) float64 3D segments ``X1, Y1, Z1, X2, Y2, Z2`` of (P, 3) points, in their frame.
+
+    ``progress(stage)`` is called as the stages normals, regions, lines start.
+    """
     config = config or Lines3DConfig()
     points = check_points(points)
     if len(points) == 0:
@@ -35,7 +41,9 @@ def extract(points: np.ndarray, config: Lines3DConfig | None = None) -> np.ndarr
     local = points - offset
     if config.downsample_m > 0:
         local = voxel_downsample(local, config.downsample_m)
-    planes = segment_planes(local, config)
+    planes = segment_planes(local, config, progress)
+    if progress:
+        progress("lines")
     return lines_from_planes(local, planes, config) + np.tile(offset, 2)
 
 
@@ -126,9 +134,10 @@ def contour_segments(
 def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
     """Returns (k', 4) boundary lines moved from the raster (cell-quantised) to where the points end.
 
-    Points within ``band`` of an edge fill [-band, e] in the outward coordinate when the edge is at e,
-    so e = 2 * mean + band, unbiased for uniform sampling; done on each half of the segment, which also
-    corrects its angle; lines whose halves disagree are dropped. uv: (n, 2) region points in plane coordinates; lines: (k, 4) in the same.
+    Along the line, bins of ``band`` length: the outermost of n points spread uniformly over
+    [-band, e] lies on average (e + band) / (n + 1) inside the edge e, so e = o_max + (o_max + band) / n
+    per bin; a least-squares line through the bins' e gives offset and angle. Lines this would tilt by
+    more than 10 degrees are dropped. uv: (n, 2) region points in plane coordinates; lines: (k, 4).
     """
     if len(lines) == 0:
         return lines
@@ -143,23 +152,40 @@ def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
         near = tree.query_ball_point(samples, 1.5 * band)
         idx = np.unique(np.concatenate([np.zeros(0, np.int64), *near]).astype(np.int64))
         t, s = (uv[idx] - a) @ d, (uv[idx] - a) @ m
-        keep = (np.abs(s) <= band) & (t >= band) & (t <= length - band)
+        keep = (np.abs(s) <= band) & (t >= 0.5 * band) & (t <= length - 0.5 * band)
         t, s = t[keep], s[keep]
-        if len(s) < 10:
+        if len(s) < 10 or np.ptp(t) < 0.5 * length:
             continue
         outward = -np.sign(s.mean())  # the points lie on the inner side
-        halves = [t < length / 2, t >= length / 2]
-        if min(h.sum() for h in halves) < 5:
+        fit = _edge_line(t, outward * s, band)
+        if fit is None:
             continue
-        e1, e2 = (np.clip(2.0 * np.mean(outward * s[h]) + band, -band, band) for h in halves)
-        if abs(e1 - e2) > 0.5 * band:  # the halves disagree: not one straight edge
+        e_a, e_b = np.clip(fit[1] + fit[0] * np.array([0.0, length]), -band, band)
+        if abs(e_b - e_a) > length * _MAX_TILT:  # not one straight edge
             keep_line[k] = False
             continue
-        if abs(e1 - e2) > 0.5 * length * _MAX_TILT:  # short: the halves fix an offset, not an angle
-            e1 = e2 = 0.5 * (e1 + e2)
-        shift_a, shift_b = 1.5 * e1 - 0.5 * e2, 1.5 * e2 - 0.5 * e1  # line through (L/4, e1), (3L/4, e2)
-        out[k] = np.r_[a + outward * shift_a * m, b + outward * shift_b * m]
+        out[k] = np.r_[a + outward * e_a * m, b + outward * e_b * m]
     return out[keep_line]
+
+
+def _edge_line(t: np.ndarray, o: np.ndarray, band: float) -> tuple[float, float] | None:
+    """Returns (slope, intercept) of the edge e(t) behind points at (t, outward offset o), or None."""
+    bins = np.floor((t - t.min()) / band).astype(np.int64)
+    count = np.bincount(bins)
+    top = np.full(len(count), -np.inf)
+    np.maximum.at(top, bins, o)
+    ok = count >= 6  # the maximum of fewer points says little
+    if ok.sum() < 2:
+        return None
+    centre = np.bincount(bins, t)[ok] / count[ok]
+    edge = top[ok] + (top[ok] + band) / count[ok]
+    weight = np.sqrt(count[ok])
+    slope, intercept = np.polyfit(centre, edge, 1, w=weight)
+    residual = np.abs(edge - (slope * centre + intercept))
+    inliers = residual <= max(2.5 * np.median(residual), 1e-9)
+    if 2 <= inliers.sum() < len(edge):  # a bin reaching into a neighbouring structure
+        slope, intercept = np.polyfit(centre[inliers], edge[inliers], 1, w=weight[inliers])
+    return float(slope), float(intercept)
 
 
 def _straight_runs(
@@ -178,13 +204,28 @@ def _straight_runs(
         # a run much longer than its chord turns a corner: the polygon cut it, it is no edge
         if chord < min_cells or len(run) > 1.2 * chord + 2:
             continue
-        core = run[2:-2] if len(run) > 8 else run  # corners round off: fit on the middle
-        centre = core.mean(axis=0)
-        direction = np.linalg.eigh(np.cov((core - centre).T))[1][:, -1]
+        trim = max(2, len(run) // 10)
+        core = run[trim:-trim] if len(run) > 2 * trim + 4 else run  # corners round off: fit on the middle
+        centre, direction = _fit_line(core)
         ends = centre + np.outer((run[[0, -1]] - centre) @ direction, direction)
         if _is_step(image, ends[0], ends[1]):
             out.append(ends.ravel())
     return np.array(out).reshape(-1, 4)
+
+
+def _fit_line(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (centre (2,), unit direction (2,)) of the line through (n, 2) pixels; pixels more than a
+    pixel off the first fit (the start of the next side, when a polygon vertex misses a corner) are
+    left out of the second."""
+    keep = np.ones(len(xy), dtype=bool)
+    for _ in range(2):
+        centre = xy[keep].mean(axis=0)
+        direction = np.linalg.eigh(np.cov((xy[keep] - centre).T))[1][:, -1]
+        residual = np.abs((xy - centre) @ np.array([-direction[1], direction[0]]))
+        if (residual <= 1.0).sum() < 3:
+            break
+        keep = residual <= 1.0
+    return centre, direction
 
 
 def _is_step(image: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:

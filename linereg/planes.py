@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -144,9 +145,11 @@ def _relabel(labels: np.ndarray, min_count: int) -> np.ndarray:
 def _touching(voxels: Voxels, point_labels: np.ndarray) -> np.ndarray:
     """Returns (Q, 3) int64 (region a < region b, count) of regions sharing a voxel or adjacent voxels."""
     labelled = point_labels >= 0
-    vl = np.unique(np.stack([voxels.of_point[labelled], point_labels[labelled]], axis=1), axis=0)
-    same = vl[:-1, 0] == vl[1:, 0]  # one voxel holding two regions: a crease voxel
-    pairs = [np.stack([vl[:-1, 1][same], vl[1:, 1][same]], axis=1)]
+    num = int(point_labels.max()) + 1 if labelled.any() else 1
+    vl = np.unique(voxels.of_point[labelled] * num + point_labels[labelled])  # sorted (voxel, label)
+    voxel, label = vl // num, vl % num
+    same = voxel[:-1] == voxel[1:]  # one voxel holding two regions: a crease voxel
+    pairs = [np.stack([label[:-1][same], label[1:][same]], axis=1)]
     # the majority region of each voxel, then 26-adjacent voxels with different majorities
     major = _majority(voxels.of_point, point_labels, len(voxels.keys))
     a, b = _edges(voxels)
@@ -154,8 +157,8 @@ def _touching(voxels: Voxels, point_labels: np.ndarray) -> np.ndarray:
     pairs_all = np.concatenate(pairs)
     pairs_all = pairs_all[(pairs_all >= 0).all(axis=1) & (pairs_all[:, 0] != pairs_all[:, 1])]
     pairs_all.sort(axis=1)
-    uniq, count = np.unique(pairs_all, axis=0, return_counts=True)
-    return np.concatenate([uniq.reshape(-1, 2), count[:, None]], axis=1)
+    uniq, count = np.unique(pairs_all[:, 0] * num + pairs_all[:, 1], return_counts=True)
+    return np.stack([uniq // num, uniq % num, count], axis=1)
 
 
 def _merge_coplanar(
@@ -190,21 +193,33 @@ def _assign_points(points: np.ndarray, voxels: Voxels, voxel_labels: np.ndarray,
     back[voxels.neighbors[rows, cols], cols] = rows
     around = np.concatenate([np.arange(len(voxels.keys))[:, None], voxels.neighbors, back], axis=1)
     cand_of_voxel = np.where(around >= 0, voxel_labels[np.maximum(around, 0)], -1)
+    # the distinct candidate regions of each voxel: most voxels have one, crease voxels a few
+    cand = np.sort(cand_of_voxel, axis=1)
+    first = cand >= 0
+    first[:, 1:] &= cand[:, 1:] != cand[:, :-1]
+    rank = np.cumsum(first, axis=1) - 1
     labels = np.full(len(points), -1, dtype=np.int64)
     best = np.full(len(points), np.inf)
-    for col in range(cand_of_voxel.shape[1]):  # 27 passes over (P,) arrays: vectorised and memory-flat
-        cand = cand_of_voxel[voxels.of_point, col]
-        idx = np.flatnonzero(cand >= 0)
-        c = cand[idx]
+    for j in range(int(first.sum(axis=1).max(initial=0))):
+        row, col = np.nonzero(first & (rank == j))
+        label_j = np.full(len(cand), -1, dtype=np.int64)
+        label_j[row] = cand[row, col]
+        c = label_j[voxels.of_point]
+        idx = np.flatnonzero(c >= 0)
+        c = c[idx]
         dist = np.abs(np.einsum("ij,ij->i", points[idx] - cen[c], nrm[c]))
         better = (dist < best[idx]) & (dist <= config.distance_m)
         labels[idx[better]], best[idx[better]] = c[better], dist[better]
     return labels
 
 
-def segment_planes(points: np.ndarray, config: Lines3DConfig | None = None) -> Planes:
+def segment_planes(
+    points: np.ndarray, config: Lines3DConfig | None = None, progress: Callable[[str], None] | None = None
+) -> Planes:
     """Returns the planar regions of (P, 3) float64 local points (metres), largest region first."""
     config = config or Lines3DConfig()
+    if progress:
+        progress("normals")
     voxels = build_voxels(points, config.voxel_m)
     # sparse clouds: grow the voxels until a typical one holds enough points for a plane fit
     voxel_m = config.voxel_m
@@ -214,6 +229,8 @@ def segment_planes(points: np.ndarray, config: Lines3DConfig | None = None) -> P
     if voxel_m != config.voxel_m:
         logger.info("sparse cloud: voxel size %.3f m instead of %.3f m", voxel_m, config.voxel_m)
         config = replace(config, voxel_m=voxel_m)
+    if progress:
+        progress("regions")
     voxel_labels = _relabel(grow_regions(voxels, config), 1)
     if (voxel_labels < 0).all():
         return _empty_planes(len(points))

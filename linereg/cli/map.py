@@ -1,0 +1,97 @@
+"""``linereg map``: build a line map from a point cloud (``build``), or summarise one (``info``).
+
+linereg map build scan.e57 -o site.npz --name site     # .ply .pcd .xyz .txt .las .laz .e57
+linereg map info site.npz
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from dataclasses import replace
+from pathlib import Path
+
+from .progress import Progress
+
+STAGES = ("read", "normals", "regions", "lines", "clusters", "write")
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("map", help="build or inspect a line map", description=__doc__)
+    maps = p.add_subparsers(dest="map_command", required=True, metavar="ACTION")
+    build = maps.add_parser("build", help="extract 3D line segments of a cloud into a map file")
+    build.add_argument("cloud", type=Path, help="point cloud: .ply .pcd .xyz .txt .las .laz .e57")
+    build.add_argument("-o", "--output", type=Path, required=True, help="map file to write (.npz)")
+    build.add_argument(
+        "--voxel", type=float, default=0.0, metavar="M", help="downsample to this voxel (m) first"
+    )
+    build.add_argument(
+        "--plane-voxel", type=float, default=None, metavar="M", help="voxel of local plane fits (m)"
+    )
+    build.add_argument("--name", default=None, help="map name (default: the cloud's file name)")
+    build.set_defaults(func=run_build)
+    info = maps.add_parser("info", help="print a summary of a map file")
+    info.add_argument("map", type=Path, help="map file (.npz)")
+    info.add_argument("--json", action="store_true", help="print the summary as JSON")
+    info.set_defaults(func=run_info)
+
+
+def run_build(args: argparse.Namespace) -> int:
+    from ..config import Lines3DConfig
+    from ..errors import InvalidInputError
+    from ..io import read_cloud
+    from ..linemap import LineMap
+
+    if args.voxel < 0 or (args.plane_voxel is not None and args.plane_voxel <= 0):
+        raise InvalidInputError("--voxel must be >= 0 and --plane-voxel > 0")
+    config = replace(Lines3DConfig(), downsample_m=args.voxel)
+    if args.plane_voxel is not None:
+        config = replace(config, voxel_m=args.plane_voxel)
+    progress = Progress(len(STAGES), "map build")
+    progress.update(0, "read")
+    start = time.perf_counter()
+    points = read_cloud(args.cloud)
+    line_map = LineMap.build(
+        points,
+        config,
+        name=args.name or args.cloud.stem,
+        progress=lambda stage: progress.update(1, stage),
+        source=str(args.cloud),
+    )
+    progress.update(1, "write")
+    line_map.save(args.output)
+    progress.update(1, "done")
+    progress.close()
+    seconds = time.perf_counter() - start
+    print(
+        f"{args.output}: {len(line_map)} segments, {len(line_map.clusters)} clusters "
+        f"from {len(points):,} points in {seconds:.1f} s"
+    )
+    return 0
+
+
+def run_info(args: argparse.Namespace) -> int:
+    from ..linemap import LineMap
+
+    summary = LineMap.load(args.map).info()
+    if args.json:
+        print(json.dumps(summary, indent=2))
+        return 0
+    print(f"map {summary.get('name')!r} ({args.map}), format version {summary.get('format_version')}")
+    print(f"  segments: {summary['num_segments']} (total {summary['total_length_m']:.1f} m)")
+    print(f"  clusters: {len(summary['clusters'])} (+{summary['unclustered']} segments in none)")
+    for k, c in enumerate(summary["clusters"]):
+        d = ", ".join(f"{v:+.3f}" for v in c["direction"])
+        print(f"    {k}: direction ({d})  {c['size']} segments  {c['support_m']:.1f} m")
+    lo, hi = summary["bounds"]
+    print(f"  bounds: min ({', '.join(f'{v:.3f}' for v in lo)})  max ({', '.join(f'{v:.3f}' for v in hi)})")
+    print(f"  tiles: {summary['num_tiles']} of {summary['tile_m']:.1f} m")
+    skip = {"name", "format_version", "num_segments", "total_length_m", "clusters", "unclustered", "bounds"}
+    skip |= {"num_tiles", "tile_m", "extraction"}
+    for key, value in summary.items():
+        if key not in skip:
+            print(f"  {key}: {value}")
+    if summary.get("extraction"):
+        print("  extraction: " + ", ".join(f"{k}={v}" for k, v in summary["extraction"].items()))
+    return 0

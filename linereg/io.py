@@ -1,0 +1,298 @@
+"""Every file linereg reads or writes: point clouds, images, camera files, JSON / TUM results.
+
+Readers raise ``FileFormatError`` naming the file and the problem; writers are atomic (a temporary file
+in the same directory, then ``os.replace``), so a killed batch never leaves a half-written result.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import tempfile
+from collections.abc import Iterable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .camera import Camera
+from .errors import FileFormatError, InvalidInputError
+
+logger = logging.getLogger(__name__)
+
+CLOUD_SUFFIXES = (".ply", ".pcd", ".xyz", ".txt", ".las", ".laz", ".e57")
+
+# COLMAP camera models -> (parameter names, dist from params); COLMAP's distortion order matches OpenCV's
+_COLMAP_MODELS = {
+    "SIMPLE_PINHOLE": (("f", "cx", "cy"), lambda p: ()),
+    "PINHOLE": (("fx", "fy", "cx", "cy"), lambda p: ()),
+    "SIMPLE_RADIAL": (("f", "cx", "cy", "k"), lambda p: (p["k"], 0.0, 0.0, 0.0)),
+    "RADIAL": (("f", "cx", "cy", "k1", "k2"), lambda p: (p["k1"], p["k2"], 0.0, 0.0)),
+    "OPENCV": (
+        ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2"),
+        lambda p: (p["k1"], p["k2"], p["p1"], p["p2"]),
+    ),
+}
+
+
+# ---------------------------------------------------------------------------------------------- clouds
+
+
+def read_cloud(path: str | os.PathLike) -> np.ndarray:
+    """Returns the (P, 3) float64 points of a .ply, .pcd, .xyz / .txt, .las / .laz or .e57 file."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in CLOUD_SUFFIXES:
+        raise FileFormatError(
+            f"{path}: unsupported point cloud format {suffix!r}; use {', '.join(CLOUD_SUFFIXES)}"
+        )
+    _check_readable(path)
+    reader = {".ply": _read_open3d, ".pcd": _read_open3d, ".xyz": _read_text, ".txt": _read_text}.get(suffix)
+    reader = reader or {".las": _read_las, ".laz": _read_las, ".e57": _read_e57}[suffix]
+    try:
+        points = reader(path)
+    except FileFormatError:
+        raise
+    except Exception as e:  # each library has its own exceptions for a corrupt file
+        raise FileFormatError(f"{path}: cannot read point cloud: {e}") from None
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) == 0:
+        raise FileFormatError(f"{path}: the point cloud holds no points (empty or corrupt file)")
+    finite = np.isfinite(points).all(axis=1)
+    if not finite.all():
+        logger.warning("%s: dropped %d points with NaN or inf coordinates", path, int((~finite).sum()))
+        points = points[finite]
+    logger.info("%s: %d points", path, len(points))
+    return points
+
+
+def _check_readable(path: Path) -> None:
+    if not path.exists():
+        raise FileFormatError(f"{path}: no such file")
+    if not path.is_file():
+        raise FileFormatError(f"{path}: not a file")
+    if not os.access(path, os.R_OK):
+        raise FileFormatError(f"{path}: not readable (permission denied)")
+
+
+def _read_open3d(path: Path) -> np.ndarray:
+    from ._open3d import open3d
+
+    o3d = open3d()
+    # open3d reports a corrupt file on stderr and returns an empty cloud, caught by the caller
+    cloud = o3d.io.read_point_cloud(str(path), format="auto", remove_nan_points=False)
+    return np.asarray(cloud.points, dtype=np.float64)
+
+
+def _read_text(path: Path) -> np.ndarray:
+    try:
+        data = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
+    except ValueError:  # comma-separated
+        data = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, delimiter=",")
+    return data
+
+
+def _read_las(path: Path) -> np.ndarray:
+    import laspy
+
+    if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
+        raise FileFormatError(
+            f"{path}: reading .laz needs a LAZ backend for laspy; install one: pip install 'laspy[lazrs]'"
+        )
+    las = laspy.read(path)
+    return np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
+
+
+def _read_e57(path: Path) -> np.ndarray:
+    import pye57
+
+    e57 = pye57.E57(str(path))
+    try:
+        scans = []
+        for i in range(e57.scan_count):
+            # transform=True applies each scan's pose: every scan lands in the common (world) frame
+            data = e57.read_scan(i, transform=True, ignore_missing_fields=True)
+            scans.append(np.stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]], axis=1))
+    finally:
+        e57.close()
+    return np.concatenate(scans) if scans else np.zeros((0, 3))
+
+
+# ---------------------------------------------------------------------------------------------- images
+
+
+def read_image(path: str | os.PathLike) -> np.ndarray:
+    """Returns the image as stored (cv2.IMREAD_UNCHANGED: (H, W) or (H, W, C), uint8 or uint16; BGR)."""
+    import cv2
+
+    path = Path(path)
+    _check_readable(path)
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise FileFormatError(f"{path}: cannot read image (unsupported or corrupt)")
+    return image
+
+
+def write_image_atomic(path: str | os.PathLike, image: np.ndarray) -> None:
+    """Writes an image, format by suffix (.png, .jpg, ...), atomically."""
+    import cv2
+
+    path = Path(path)
+    ok, encoded = cv2.imencode(path.suffix or ".png", np.asarray(image))
+    if not ok:
+        raise InvalidInputError(f"{path}: cannot encode the image as {path.suffix!r}")
+    write_bytes_atomic(path, encoded.tobytes())
+
+
+# ---------------------------------------------------------------------------------------------- cameras
+
+
+def read_cameras(path: str | os.PathLike) -> dict[str, Camera] | Camera:
+    """Returns one shared Camera, or a dict image name (COLMAP: camera id) -> Camera.
+
+    JSON: ``{fx, fy, cx, cy, width, height[, dist]}`` (shared), a list of such with ``file`` / ``image`` /
+    ``name`` keys, a dict keyed by image name, or ``{"images": [...]}`` (shared/data cameras.json).
+    COLMAP ``cameras.txt``: SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL, OPENCV; one camera -> Camera.
+    """
+    path = Path(path)
+    _check_readable(path)
+    text = _read_text_file(path)
+    if path.suffix.lower() == ".json":
+        try:
+            obj = json.loads(text)
+        except json.JSONDecodeError as e:
+            raise FileFormatError(f"{path}: invalid JSON: {e}") from None
+        return _cameras_from_json(obj, path)
+    cameras = _cameras_from_colmap(text, path)
+    return next(iter(cameras.values())) if len(cameras) == 1 else cameras
+
+
+def _read_text_file(path: Path) -> str:
+    try:
+        return path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as e:
+        raise FileFormatError(f"{path}: cannot read: {e}") from None
+
+
+def _camera(d: Any, source: str) -> Camera:
+    if not isinstance(d, dict):
+        raise FileFormatError(f"{source}: expected a camera object, got {type(d).__name__}")
+    try:
+        return Camera.from_dict(d, source=source)
+    except InvalidInputError as e:
+        raise FileFormatError(str(e)) from None
+
+
+def _cameras_from_json(obj: Any, path: Path) -> dict[str, Camera] | Camera:
+    if isinstance(obj, dict) and "images" in obj and "fx" not in obj:
+        obj = obj["images"]
+    if isinstance(obj, dict) and "camera" in obj and "fx" not in obj:
+        obj = obj["camera"]
+    if isinstance(obj, dict) and "fx" in obj:
+        return _camera(obj, str(path))
+    if isinstance(obj, list):
+        out = {}
+        for i, item in enumerate(obj):
+            name = next(
+                (item[k] for k in ("file", "image", "name") if isinstance(item, dict) and k in item), None
+            )
+            if name is None:
+                raise FileFormatError(f"{path}: camera #{i}: missing key 'file' (the image name)")
+            out[str(name)] = _camera(item, f"{path}: {name}")
+        return out
+    if isinstance(obj, dict) and obj:
+        return {str(name): _camera(item, f"{path}: {name}") for name, item in obj.items()}
+    raise FileFormatError(f"{path}: no camera found (expected fx, fy, cx, cy, width, height)")
+
+
+def _cameras_from_colmap(text: str, path: Path) -> dict[str, Camera]:
+    cameras = {}
+    for number, line in enumerate(text.splitlines(), start=1):
+        fields = line.split()
+        if not fields or fields[0].startswith("#"):
+            continue
+        where = f"{path}:{number}"
+        if len(fields) < 4:
+            raise FileFormatError(f"{where}: expected CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+        camera_id, model = fields[0], fields[1].upper()
+        if model not in _COLMAP_MODELS:
+            raise FileFormatError(
+                f"{where}: unsupported camera model {model}; use {', '.join(_COLMAP_MODELS)}"
+            )
+        names, to_dist = _COLMAP_MODELS[model]
+        if len(fields) != 4 + len(names):
+            raise FileFormatError(f"{where}: {model} needs {len(names)} parameters ({' '.join(names)})")
+        try:
+            params = dict(zip(names, map(float, fields[4:]), strict=True))
+            width, height = int(fields[2]), int(fields[3])
+        except ValueError as e:
+            raise FileFormatError(f"{where}: {e}") from None
+        fx, fy = params.get("fx", params.get("f")), params.get("fy", params.get("f"))
+        # COLMAP puts the centre of the top-left pixel at (0.5, 0.5); linereg at (0, 0)
+        d = {"fx": fx, "fy": fy, "cx": params["cx"] - 0.5, "cy": params["cy"] - 0.5}
+        cameras[camera_id] = _camera(d | {"width": width, "height": height, "dist": to_dist(params)}, where)
+    if not cameras:
+        raise FileFormatError(f"{path}: no camera found (COLMAP cameras.txt expected)")
+    return cameras
+
+
+# ---------------------------------------------------------------------------------------------- writers
+
+
+def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
+    """Writes ``data`` to ``path`` atomically: a temporary file in the same directory, then os.replace."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+
+
+def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
+    """Writes ``obj`` as indented JSON (numpy arrays and scalars become lists and numbers), atomically."""
+    text = json.dumps(obj, indent=2, default=_json_default, allow_nan=True)
+    write_bytes_atomic(path, (text + "\n").encode("utf-8"))
+
+
+def _json_default(value: Any) -> Any:
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, Path):
+        return str(value)
+    raise TypeError(f"cannot write {type(value).__name__} as JSON")
+
+
+def write_tum(
+    path: str | os.PathLike, stamps_or_names: Sequence[float | str], cam_from_world_list: Iterable
+) -> None:
+    """Writes a TUM trajectory: one line ``timestamp tx ty tz qx qy qz qw`` per frame, atomically.
+
+    TUM stores the camera pose in the world, world_from_cam: t is the camera centre, q its rotation
+    (Hamilton, scalar last). cam_from_world_list: (4, 4) float64 matrices, one per stamp.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from .geometry import invert
+
+    poses = [np.asarray(m, dtype=np.float64) for m in cam_from_world_list]
+    if len(poses) != len(stamps_or_names):
+        raise InvalidInputError(f"write_tum: {len(stamps_or_names)} stamps but {len(poses)} poses")
+    lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam)"]
+    for stamp, cam_from_world in zip(stamps_or_names, poses, strict=True):
+        if cam_from_world.shape != (4, 4):
+            raise InvalidInputError(f"write_tum: a pose must be (4, 4), got {cam_from_world.shape}")
+        world_from_cam = invert(cam_from_world)
+        q = Rotation.from_matrix(world_from_cam[:3, :3]).as_quat()  # scipy: (x, y, z, w)
+        label = stamp if isinstance(stamp, str) else f"{float(stamp):.9f}"
+        lines.append(" ".join([label, *(f"{v:.9f}" for v in (*world_from_cam[:3, 3], *q))]))
+    write_bytes_atomic(path, ("\n".join(lines) + "\n").encode("utf-8"))

@@ -1,0 +1,145 @@
+"""lines3d.extract on a sampled box building with a recessed window: recall, precision of positions, offsets."""
+
+import numpy as np
+import pytest
+
+from linereg.config import Lines3DConfig
+from linereg.errors import InvalidInputError
+from linereg.lines3d import extract, merge_collinear
+from linereg.planes import segment_planes
+
+WINDOW = (3.0, 4.5, 2.0, 3.2, 0.2)  # x0, x1, z0, z1, recess depth
+
+
+def _rect(rng, origin, a, b, density, hole=None):
+    """Uniform samples of the rectangle origin + u a + v b (u, v in [0, 1]), minus a hole in metres."""
+    origin, a, b = (np.asarray(v, dtype=np.float64) for v in (origin, a, b))
+    la, lb = np.linalg.norm(a), np.linalg.norm(b)
+    uv = rng.uniform(size=(rng.poisson(density * la * lb), 2))
+    if hole is not None:
+        (u0, u1), (v0, v1) = hole
+        u, v = uv[:, 0] * la, uv[:, 1] * lb
+        uv = uv[~((u > u0) & (u < u1) & (v > v0) & (v < v1))]
+    return origin + uv[:, :1] * a + uv[:, 1:] * b
+
+
+def box_building(rng, density=400.0, noise_m=0.003):
+    """Returns ((P, 3) points, (24, 6) true edges): a 10 x 8 x 6 m box on a ground plane, one recessed window."""
+    length, width, height = 10.0, 8.0, 6.0
+    x0, x1, z0, z1, depth = WINDOW
+    parts = [
+        _rect(rng, (0, 0, 0), (length, 0, 0), (0, 0, height), density, hole=((x0, x1), (z0, z1))),
+        _rect(rng, (0, width, 0), (length, 0, 0), (0, 0, height), density),
+        _rect(rng, (0, 0, 0), (0, width, 0), (0, 0, height), density),
+        _rect(rng, (length, 0, 0), (0, width, 0), (0, 0, height), density),
+        _rect(rng, (0, 0, height), (length, 0, 0), (0, width, 0), density),
+        _rect(
+            rng,
+            (-5, -5, 0),
+            (length + 10, 0, 0),
+            (0, width + 10, 0),
+            density,
+            ((5, 5 + length), (5, 5 + width)),
+        ),
+        _rect(rng, (x0, 0, z0), (x1 - x0, 0, 0), (0, depth, 0), density),  # reveals
+        _rect(rng, (x0, 0, z1), (x1 - x0, 0, 0), (0, depth, 0), density),
+        _rect(rng, (x0, 0, z0), (0, 0, z1 - z0), (0, depth, 0), density),
+        _rect(rng, (x1, 0, z0), (0, 0, z1 - z0), (0, depth, 0), density),
+        _rect(rng, (x0, depth, z0), (x1 - x0, 0, 0), (0, 0, z1 - z0), density),  # glass
+    ]
+    points = np.concatenate(parts)
+    points += rng.normal(0.0, noise_m, points.shape)
+    corners = np.array([[0, 0], [length, 0], [length, width], [0, width]], dtype=np.float64)
+    edges = []
+    for i in range(4):
+        p, q = corners[i], corners[(i + 1) % 4]
+        edges += [[*p, height, *q, height], [*p, 0, *q, 0], [*p, 0, *p, height]]
+    for y in (0.0, depth):
+        edges += [
+            [x0, y, z0, x1, y, z0],
+            [x0, y, z1, x1, y, z1],
+            [x0, y, z0, x0, y, z1],
+            [x1, y, z0, x1, y, z1],
+        ]
+    return points, np.array(edges, dtype=np.float64)
+
+
+def recovered(found, truth, distance_m=0.05, angle_deg=2.0, min_cover=0.8):
+    """Returns (E,) bool: at least min_cover of the true edge lies within distance_m of found segments
+    that are parallel to it within angle_deg."""
+    fp, fq = found[:, :3], found[:, 3:]
+    fl = np.linalg.norm(fq - fp, axis=1)
+    fd = (fq - fp) / fl[:, None]
+    out = []
+    for edge in truth:
+        p, q = edge[:3], edge[3:]
+        d = (q - p) / np.linalg.norm(q - p)
+        samples = p + np.outer(np.arange(0.0, np.linalg.norm(q - p), 0.02), d)
+        par = np.abs(fd @ d) >= np.cos(np.radians(angle_deg))
+        t = np.clip(np.einsum("skj,kj->sk", samples[:, None] - fp[par][None], fd[par]), 0, fl[par])
+        near = fp[par][None] + t[..., None] * fd[par][None]
+        dist = np.linalg.norm(samples[:, None] - near, axis=2)
+        out.append(dist.size > 0 and (dist <= distance_m).any(axis=1).mean() >= min_cover)
+    return np.array(out)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return box_building(np.random.default_rng(7))
+
+
+@pytest.fixture(scope="module")
+def segments(scene):
+    return extract(scene[0])
+
+
+def test_recovers_facade_and_window_edges(scene, segments):
+    _, edges = scene
+    ok = recovered(segments, edges)
+    assert ok.mean() >= 0.9, f"missed edges {np.flatnonzero(~ok)}"
+    assert ok[:12].all()  # the box outline: creases between large planes
+
+
+def test_output_shape_and_lengths(segments):
+    assert segments.dtype == np.float64 and segments.shape[1] == 6
+    lengths = np.linalg.norm(segments[:, 3:] - segments[:, :3], axis=1)
+    assert (lengths >= Lines3DConfig().min_length_m - 1e-9).all()
+    assert len(segments) < 80  # merged: no swarm of fragments
+
+
+def test_large_offset_gives_same_segments(scene, segments):
+    offset = np.array([5e6, 5e6, 100.0])
+    shifted = extract(scene[0] + offset)
+    assert shifted.shape == segments.shape
+    np.testing.assert_allclose(shifted - np.tile(offset, 2), segments, atol=1e-3)
+
+
+def test_regions_are_the_planes(scene):
+    planes = segment_planes(scene[0] - scene[0].min(axis=0))
+    big = planes.normals[planes.counts > 5000]
+    # ground, roof, 4 walls: every large region is axis-aligned
+    assert len(big) == 6
+    assert np.allclose(np.abs(big).max(axis=1), 1.0, atol=1e-3)
+
+
+def test_downsampling_keeps_outline(scene):
+    found = extract(scene[0], Lines3DConfig(downsample_m=0.05))
+    assert recovered(found, scene[1][:12]).all()
+
+
+def test_merge_collinear_joins_pieces():
+    pieces = np.array([[0, 0, 0, 1, 0, 0], [1.05, 0.01, 0, 2, 0.01, 0], [0, 1, 0, 1, 1, 0]], dtype=np.float64)
+    merged = merge_collinear(pieces, np.zeros(3), Lines3DConfig())
+    assert len(merged) == 2
+    longest = merged[np.argmax(np.linalg.norm(merged[:, 3:] - merged[:, :3], axis=1))]
+    assert np.linalg.norm(longest[3:] - longest[:3]) == pytest.approx(2.0, abs=0.02)
+
+
+def test_degenerate_inputs():
+    assert extract(np.zeros((0, 3))).shape == (0, 6)
+    rng = np.random.default_rng(0)
+    assert extract(rng.normal(size=(200, 3))).shape[1] == 6  # noise: no planes, maybe nothing
+    with pytest.raises(InvalidInputError):
+        extract(np.zeros((10, 2)))
+    with pytest.raises(InvalidInputError):
+        extract(np.full((10, 3), np.nan))
