@@ -13,6 +13,28 @@ from .errors import InvalidInputError
 
 
 @dataclass(frozen=True)
+class Lines3DConfig:
+    """3D line segments from a point cloud: planar regions, their contours and creases (Lu et al. 2019)."""
+
+    downsample_m: float = 0.0  # optional voxel downsampling before anything else; 0 = keep every point
+    voxel_m: float = 0.1  # cube of the local plane fits (normals by PCA) that regions grow over
+    min_voxel_points: int = 5  # fewer points cannot fix a plane
+    max_curvature: float = 0.03  # lambda_min / sum(lambda) above this: the voxel straddles a crease
+    angle_deg: float = 10.0  # neighbouring voxel normals closer than this grow one region
+    distance_m: float = 0.03  # point-to-plane distance that still belongs to a region
+    merge_angle_deg: float = 5.0  # adjacent regions this parallel ...
+    merge_distance_m: float = 0.05  # ... and this close to each other's plane are one
+    min_region_points: int = 60
+    cell_m: float = 0.0  # raster cell of a region's contour; 0 = 2 x the estimated point spacing
+    approx_cells: float = 1.5  # polygon approximation tolerance of a contour (cells)
+    min_length_m: float = 0.3  # shorter segments are dropped
+    crease_min_angle_deg: float = 20.0  # planes meeting at a larger angle give an intersection line
+    collinear_angle_deg: float = 2.0  # segments this parallel ...
+    collinear_distance_m: float = 0.04  # ... this close to one line ...
+    collinear_gap_m: float = 0.15  # ... and this close along it are merged
+
+
+@dataclass(frozen=True)
 class VanishingConfig:
     """2D vanishing directions by multiple RANSAC on interpretation-plane normals (Rother 2002)."""
 
