@@ -10,6 +10,7 @@ import json
 import logging
 import os
 import tempfile
+import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import Any
@@ -86,11 +87,12 @@ def _read_open3d(path: Path) -> np.ndarray:
 
 
 def _read_text(path: Path) -> np.ndarray:
-    try:
-        data = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
-    except ValueError:  # comma-separated
-        data = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, delimiter=",")
-    return data
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported as empty below
+        try:
+            return np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
+        except ValueError:  # comma-separated
+            return np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, delimiter=",")
 
 
 def _read_las(path: Path) -> np.ndarray:

@@ -47,6 +47,7 @@ class LineMap:
         self._origin = np.asarray(grid["origin"], dtype=np.float64)
         self.tile_m = float(grid["tile_m"])
         self._keys, self._ptr, self._members = index if index is not None else _tile_index(segments, grid)
+        self._cells = np.stack([self._keys // _SPAN, self._keys % _SPAN], axis=1) - _SPAN // 2  # (T, 2) i, j
 
     # ------------------------------------------------------------------------------------ construction
 
@@ -171,11 +172,9 @@ class LineMap:
         position = np.asarray(position, dtype=np.float64).reshape(3)
         lo = np.floor((position[self._axes] - radius_m - self._origin) / self.tile_m).astype(np.int64)
         hi = np.floor((position[self._axes] + radius_m - self._origin) / self.tile_m).astype(np.int64)
-        ii, jj = np.meshgrid(np.arange(lo[0], hi[0] + 1), np.arange(lo[1], hi[1] + 1), indexing="ij")
-        keys = _flat(np.stack([ii.ravel(), jj.ravel()], axis=1))
-        pos = np.searchsorted(self._keys, keys)
-        found = (pos < len(self._keys)) & (self._keys[np.minimum(pos, len(self._keys) - 1)] == keys)
-        parts = [self._members[self._ptr[p] : self._ptr[p + 1]] for p in pos[found]]
+        # the non-empty tiles inside the query square: O(tiles), whatever the radius
+        inside = np.flatnonzero(((self._cells >= lo) & (self._cells <= hi)).all(axis=1))
+        parts = [self._members[self._ptr[p] : self._ptr[p + 1]] for p in inside]
         cand = np.unique(np.concatenate([np.zeros(0, np.int64), *parts]))
         return cand[_point_segment_distance(position, self.segments[cand]) <= radius_m]
 
