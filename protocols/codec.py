@@ -232,7 +232,7 @@ def encode_reply(rep: LocalizeReply) -> bytes:
         "rms_px": float(rep.rms_px),
         "matches": None if rep.matches is None else encode_array(np.asarray(rep.matches, dtype=np.int64)),
         "timings": {str(k): float(v) for k, v in rep.timings.items()},
-        "map": {"name": rep.map_name, "version": rep.map_version},
+        "map": {"name": rep.map_name, "id": rep.map_id, "version": rep.map_version},
     }
     return pack("localize_reply", body)
 
@@ -272,6 +272,7 @@ def decode_reply(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> LocalizeRe
         timings=timings,
         map_name=optional(map_doc, "name", str) or "",
         map_version=str(map_doc.get("version", "")),
+        map_id=str(map_doc.get("id", "")),
     )
 
 

@@ -81,6 +81,7 @@ def messages() -> dict[str, object]:
             {"vanishing": 0.004, "refine": 0.012},
             "campus",
             "3",
+            "5f0c2a9e",
         ),
         "reply_not_localized": LocalizeReply(
             "req-1", False, "too few segments", map_name="campus", map_version="3"

@@ -84,11 +84,18 @@ class LocalizeReply:
     timings: dict[str, float] = field(default_factory=dict)
     map_name: str = ""
     map_version: str = ""
+    map_id: str = ""  # unique id of the map's content (another build of the same place has another id)
     version: int = PROTOCOL_VERSION
 
     @classmethod
     def from_registration(
-        cls, id: str, reg: Registration, map_name: str, map_version: str, return_matches: bool
+        cls,
+        id: str,
+        reg: Registration,
+        map_name: str,
+        map_version: str,
+        return_matches: bool,
+        map_id: str = "",
     ) -> LocalizeReply:
         """Returns the reply carrying ``reg`` (matches only when asked for)."""
         return cls(
@@ -105,6 +112,7 @@ class LocalizeReply:
             timings={str(k): float(v) for k, v in reg.timings.items()},
             map_name=map_name,
             map_version=map_version,
+            map_id=map_id,
         )
 
     def to_registration(self) -> Registration:

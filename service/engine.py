@@ -22,6 +22,7 @@ class Engine:
     map_version: str = ""
     info: dict = field(default_factory=dict)
     config: object = None
+    map_id: str = ""  # unique id of the map's content (LineMap.info()["map_id"])
 
 
 def load_engine(spec: str, args: tuple) -> Engine:
@@ -37,8 +38,7 @@ def load_map_engine(map_path: str, map_name: str | None = None) -> Engine:
     line_map = linereg.LineMap.load(map_path)
     info = dict(line_map.info())
     name = map_name or str(getattr(line_map, "name", "") or info.get("name") or "map")
-    version = str(info.get("version", info.get("format_version", "")))
-    return Engine(line_map, linereg.localize, linereg.localize_segments, name, version, info)
+    return _engine(line_map, name, info)
 
 
 def load_segments_engine(lines3d_path: str, map_name: str) -> Engine:
@@ -48,7 +48,14 @@ def load_segments_engine(lines3d_path: str, map_name: str) -> Engine:
     import linereg
 
     line_map = linereg.LineMap.from_segments(np.load(lines3d_path), name=map_name)
-    info = dict(line_map.info())
-    return Engine(
-        line_map, linereg.localize, linereg.localize_segments, map_name, str(info.get("version", "")), info
-    )
+    return _engine(line_map, map_name, dict(line_map.info()))
+
+
+def _engine(line_map, name: str, info: dict) -> Engine:
+    """Returns the Engine of the real library over a loaded map with its ``info()`` metadata."""
+    import linereg
+
+    version = str(info.get("version", info.get("format_version", "")))
+    engine = Engine(line_map, linereg.localize, linereg.localize_segments, name, version, info)
+    engine.map_id = str(info.get("map_id", ""))
+    return engine

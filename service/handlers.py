@@ -36,7 +36,7 @@ def handle_localize(payload: bytes, engine: Engine, limits: Limits) -> bytes:
         log.exception("localize failed for request %s", req.id)
         return error_bytes("internal", f"{type(e).__name__}: {e}", req.id)
     reply = LocalizeReply.from_registration(
-        req.id, reg, engine.map_name, engine.map_version, req.return_matches
+        req.id, reg, engine.map_name, engine.map_version, req.return_matches, engine.map_id
     )
     return protocols.encode_reply(reply)
 
