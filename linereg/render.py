@@ -151,6 +151,11 @@ def _clip_near(quad_cam: np.ndarray, near_m: float) -> np.ndarray:
     return np.array(out)
 
 
+def _rotate(vectors: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Returns (..., 3) ``R @ v`` for every vector; einsum, as ``(N, 3) @ (3, 3)`` matmul is slow here."""
+    return np.einsum("...k,jk->...j", vectors, R)
+
+
 def _pixel_rays(camera: Camera) -> np.ndarray:
     """Returns (H, W, 3) float64 camera-frame rays (x, y, 1) of every pixel."""
     u = (np.arange(camera.width) - camera.cx) / camera.fx
@@ -190,7 +195,7 @@ def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator,
 
 def _sky_image(camera: Camera, world_from_cam: np.ndarray) -> np.ndarray:
     """Returns (H, W, 3) float32 BGR sky: gradient by ray elevation, far ground below the horizon."""
-    dirs = _pixel_rays(camera) @ world_from_cam[:3, :3].T
+    dirs = _rotate(_pixel_rays(camera), world_from_cam[:3, :3])
     elevation = dirs[:, :, 2] / np.linalg.norm(dirs, axis=2)
     e = np.clip(elevation, 0.0, 1.0)[..., None] ** 0.6
     colour = (1.0 - e) * _SKY_HORIZON + e * _SKY_ZENITH
@@ -201,9 +206,10 @@ def _texture(building, camera, world_from_cam, face_id, inv_depth, rng) -> np.nd
     """Returns (H, W) float32 brightness factors around 1: plaster, asphalt, reflections by face kind."""
     ids = np.maximum(face_id, 0)
     depth = np.where(face_id >= 0, 1.0 / np.maximum(inv_depth, 1e-12), 0.0).astype(np.float32)
-    points = (_pixel_rays(camera).astype(np.float32) * depth[:, :, None]) @ world_from_cam[:3, :3].T.astype(
+    rays = _pixel_rays(camera).astype(np.float32) * depth[:, :, None]
+    points = _rotate(rays, world_from_cam[:3, :3].astype(np.float32)) + world_from_cam[:3, 3].astype(
         np.float32
-    ) + world_from_cam[:3, 3].astype(np.float32)
+    )
     # texture coordinates in the face's plane: (horizontal, z) on facades, (x, y) on the ground
     flat = np.abs(building.normals[:, 2]) > 0.5
     tex_u = np.where(flat[ids], points[:, :, 0], points[:, :, 0] + points[:, :, 1])
