@@ -86,9 +86,8 @@ def scanner_positions(building: Building, clearance_m: float = 8.0) -> np.ndarra
             [hi[0], lo[1]],
         ]
     )
-    inside = (
-        (candidates[:, None, :] > building.blocks[None, :, 0, :2] - 1.0)
-        & (candidates[:, None, :] < building.blocks[None, :, 1, :2] + 1.0)
-    ).all(axis=2)
-    free = candidates[~inside.any(axis=1)]
+    above = candidates[:, None, :] > building.blocks[None, :, 0, :2] - 1.0
+    below = candidates[:, None, :] < building.blocks[None, :, 1, :2] + 1.0
+    inside = np.all(above & below, axis=2)
+    free = candidates[~np.any(inside, axis=1)]
     return np.c_[free, np.full(len(free), SCANNER_HEIGHT_M)]

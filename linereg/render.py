@@ -77,7 +77,8 @@ def render_image(
         image = _distort(image, camera)
     if cfg.blur_sigma_px > 0:
         image = cv2.GaussianBlur(image, (0, 0), cfg.blur_sigma_px)
-    image = image * 255.0 + rng.normal(0.0, cfg.noise_std, size=image.shape).astype(np.float32)
+    noise = np.asarray(rng.normal(0.0, cfg.noise_std, size=image.shape), dtype=np.float32)
+    image = image * 255.0 + noise
     return np.clip(image + 0.5, 0, 255).astype(np.uint8)
 
 
@@ -225,8 +226,8 @@ def _texture(building, camera, world_from_cam, face_id, inv_depth, rng) -> np.nd
 def _value_noise(rng: np.random.Generator, u: np.ndarray, v: np.ndarray) -> np.ndarray:
     """Returns float32 smooth zero-mean noise (about unit std) at texture coordinates u, v (H, W)."""
     size = 256
-    tile = cv2.GaussianBlur(rng.normal(size=(size, size)).astype(np.float32), (0, 0), 1.5)
-    tile /= tile.std()
+    blurred = cv2.GaussianBlur(rng.normal(size=(size, size)).astype(np.float32), (0, 0), 1.5)
+    tile = np.asarray(blurred / float(blurred.std()), dtype=np.float32)
     # the tile repeats: wrap the coordinates into it so that remap's bilinear lookup stays in range
     mu = np.mod(u, size).astype(np.float32)
     mv = np.mod(v, size).astype(np.float32)
