@@ -51,16 +51,21 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     """Returns (M, 6) float64 merged contour and crease segments of the regions of (P, 3) local points."""
     if len(planes.counts) == 0:
         return np.zeros((0, 6))
-    cell = config.cell_m if config.cell_m > 0 else max(2.0 * planes.spacing_m, 1e-3)
+    # raster cells follow each region's own density (a scanner's falls with range)
+    cells = np.full(len(planes.counts), config.cell_m) if config.cell_m > 0 else 2.0 * planes.spacing_m
+    cells = np.maximum(cells, 1e-3)
     order = np.argsort(planes.labels, kind="stable")
     bounds = np.searchsorted(planes.labels[order], np.arange(len(planes.counts) + 1))
     members = [order[bounds[r] : bounds[r + 1]] for r in range(len(planes.counts))]
-    creases = crease_segments(points, planes, members, cell, config)
-    contours = [
-        contour_segments(points[idx], planes.normals[r], planes.centroids[r], cell, config)
-        for r, idx in enumerate(members)
-    ]
-    contour = drop_near(np.concatenate([np.zeros((0, 6)), *contours]), creases, 2.0 * cell, 10.0)
+    # small patches (clutter) give fragments, not edges: about count * spacing^2 of surface each
+    large = planes.counts * planes.spacing_m**2 >= config.min_region_area_m2
+    creases = crease_segments(points, planes, members, large, cells, config)
+    contours, near_m = [np.zeros((0, 6))], [np.zeros(0)]
+    for r in np.flatnonzero(large):
+        found = contour_segments(points[members[r]], planes.normals[r], planes.centroids[r], cells[r], config)
+        contours.append(found)
+        near_m.append(np.full(len(found), 2.0 * cells[r]))
+    contour = drop_near(np.concatenate(contours), creases, np.concatenate(near_m), 10.0)
     segments = np.concatenate([creases, contour])
     # creases are exact plane intersections: they win over the (rasterised) contour along the same line
     priority = np.r_[np.zeros(len(creases)), np.ones(len(contour))]
@@ -79,11 +84,14 @@ def check_points(points: object) -> np.ndarray:
     return arr
 
 
-def drop_near(segments: np.ndarray, reference: np.ndarray, distance: float, angle_deg: float) -> np.ndarray:
-    """Returns the (k, 6) segments that do not run along a reference segment: a region's contour along a
-    crease is the same edge as the crease's intersection line, only less exact."""
+def drop_near(
+    segments: np.ndarray, reference: np.ndarray, distance: np.ndarray, angle_deg: float
+) -> np.ndarray:
+    """Returns the (k, 6) segments that do not run along a reference segment (within (k,) ``distance``
+    and angle_deg): a region's contour along a crease is the crease's intersection line, only less exact."""
     if len(segments) == 0 or len(reference) == 0:
         return segments
+    distance = np.asarray(distance)[:, None]
     r0, r1 = reference[:, :3], reference[:, 3:]
     rlen = np.linalg.norm(r1 - r0, axis=1)
     rdir = (r1 - r0) / rlen[:, None]
@@ -116,9 +124,12 @@ def contour_segments(
     cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / _MAX_RASTER_PIXELS)))
     lo = uv.min(axis=0) - 2 * cell  # a 2-cell empty border: contours never touch the image edge
     ij = np.floor((uv - lo) / cell).astype(np.int64)
-    image = np.zeros((int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3), np.uint8)
+    image: np.ndarray = np.zeros((int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3), np.uint8)
     image[ij[:, 1], ij[:, 0]] = 255
     image = cv2.morphologyEx(image, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))  # sampling gaps
+    # holes and islands smaller than a square of half the shortest edge cannot hold an edge: sampling
+    min_area = max((0.5 * config.min_length_m / cell) ** 2, 4.0)
+    image = _remove_small(255 - _remove_small(255 - image, min_area), min_area)
     contours, _ = cv2.findContours(image, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
     min_cells = config.min_length_m / cell
     lines2d = [
@@ -166,6 +177,14 @@ def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
             continue
         out[k] = np.r_[a + outward * e_a * m, b + outward * e_b * m]
     return out[keep_line]
+
+
+def _remove_small(image: np.ndarray, min_area: float) -> np.ndarray:
+    """Returns the (H, W) uint8 binary image without its 8-connected foreground parts below min_area px."""
+    _, labels, stats, _ = cv2.connectedComponentsWithStats(image, connectivity=8)
+    keep = stats[:, cv2.CC_STAT_AREA] >= min_area
+    keep[0] = False  # background
+    return np.where(keep[labels], 255, 0).astype(np.uint8)
 
 
 def _edge_line(t: np.ndarray, o: np.ndarray, band: float) -> tuple[float, float] | None:
@@ -220,7 +239,10 @@ def _fit_line(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     keep = np.ones(len(xy), dtype=bool)
     for _ in range(2):
         centre = xy[keep].mean(axis=0)
-        direction = np.linalg.eigh(np.cov((xy[keep] - centre).T))[1][:, -1]
+        d = xy[keep] - centre
+        sxx, syy, sxy = (d[:, 0] ** 2).sum(), (d[:, 1] ** 2).sum(), (d[:, 0] * d[:, 1]).sum()
+        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # principal axis of the 2 x 2 scatter
+        direction = np.array([np.cos(angle), np.sin(angle)])
         residual = np.abs((xy - centre) @ np.array([-direction[1], direction[0]]))
         if (residual <= 1.0).sum() < 3:
             break
@@ -239,7 +261,7 @@ def _is_step(image: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
         xy = np.rint(along + side * m).astype(np.int64)
         xy = np.clip(xy, 0, [image.shape[1] - 1, image.shape[0] - 1])
         filled.append(np.mean(image[xy[:, 1], xy[:, 0]] > 0) if len(xy) else 0.0)
-    return max(filled) >= 0.75 and min(filled) <= 0.25
+    return bool(max(filled) >= 0.75 and min(filled) <= 0.25)
 
 
 def _vertex_indices(contour: np.ndarray, poly: np.ndarray) -> np.ndarray:
@@ -250,33 +272,78 @@ def _vertex_indices(contour: np.ndarray, poly: np.ndarray) -> np.ndarray:
 
 
 def crease_segments(
-    points: np.ndarray, planes: Planes, members: list[np.ndarray], cell: float, config: Lines3DConfig
+    points: np.ndarray,
+    planes: Planes,
+    members: list[np.ndarray],
+    large: np.ndarray,
+    cells: np.ndarray,
+    config: Lines3DConfig,
 ) -> np.ndarray:
-    """Returns (K, 6) plane-plane intersection segments of touching regions, clipped to where both have
-    points within 3 cells of the line (a crease has no boundary in the cloud, only two planes meeting)."""
+    """Returns (K, 6) plane-plane intersection segments of touching ``large`` (R,) regions, clipped to
+    where both have points within 3 cells of the line (a crease has no boundary in the cloud, only two
+    planes meeting)."""
     out = []
-    min_sin = np.sin(np.radians(config.crease_min_angle_deg))
-    for a, b in planes.pairs:
+    pairs = planes.pairs[large[planes.pairs].all(axis=1)] if len(planes.pairs) else planes.pairs
+    directions = np.cross(planes.normals[pairs[:, 0]], planes.normals[pairs[:, 1]])
+    sines = np.linalg.norm(directions, axis=1)
+    keep = sines >= np.sin(np.radians(config.crease_min_angle_deg))
+    boxes = {
+        r: (points[members[r]].min(axis=0), points[members[r]].max(axis=0)) for r in np.unique(pairs[keep])
+    }
+    trees: dict[int, cKDTree] = {}
+    for (a, b), direction in zip(pairs[keep], directions[keep] / sines[keep, None], strict=True):
         na, nb = planes.normals[a], planes.normals[b]
-        direction = np.cross(na, nb)
-        if np.linalg.norm(direction) < min_sin:
-            continue
-        direction /= np.linalg.norm(direction)
+        cell = max(cells[a], cells[b])
         # the point of the line nearest both centroids' planes: n_a.x = d_a, n_b.x = d_b, direction.x = mean
         mid = 0.5 * (planes.centroids[a] + planes.centroids[b]) @ direction
         rhs = [na @ planes.centroids[a], nb @ planes.centroids[b], mid]
         origin = np.linalg.solve(np.stack([na, nb, direction]), rhs)
-        ta = _near_line(points[members[a]], origin, direction, 3 * cell)
-        tb = _near_line(points[members[b]], origin, direction, 3 * cell)
+        span = _overlap(boxes[a], boxes[b], origin, direction, 3 * cell)
+        if span is None:
+            continue
+        ta = _near_line(points, members[a], trees, a, origin, direction, span, 3 * cell)
+        tb = _near_line(points, members[b], trees, b, origin, direction, span, 3 * cell)
         for t0, t1 in _common_runs(ta, tb, cell, config):
             out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
     return np.array(out).reshape(-1, 6)
 
 
-def _near_line(points: np.ndarray, origin: np.ndarray, direction: np.ndarray, radius: float) -> np.ndarray:
-    """Returns the (k,) line parameters of the points within ``radius`` of the line."""
-    t = (points - origin) @ direction
-    perp = points - origin - np.outer(t, direction)
+def _overlap(box_a, box_b, origin: np.ndarray, direction: np.ndarray, margin: float):
+    """Returns the (t0, t1) stretch of the line inside both regions' bounding boxes (grown by margin)."""
+    lo = np.maximum(box_a[0], box_b[0]) - margin
+    hi = np.minimum(box_a[1], box_b[1]) + margin
+    if (lo > hi).any():
+        return None
+    t0, t1 = -np.inf, np.inf
+    for k in range(3):  # slab clipping of the line against the box
+        if abs(direction[k]) < 1e-12:
+            if not lo[k] <= origin[k] <= hi[k]:
+                return None
+            continue
+        ta, tb = sorted(((lo[k] - origin[k]) / direction[k], (hi[k] - origin[k]) / direction[k]))
+        t0, t1 = max(t0, ta), min(t1, tb)
+    return (t0, t1) if t1 > t0 else None
+
+
+def _near_line(
+    points: np.ndarray,
+    member: np.ndarray,
+    trees: dict[int, cKDTree],
+    region: int,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    span: tuple[float, float],
+    radius: float,
+) -> np.ndarray:
+    """Returns the (k,) line parameters of the region's points within ``radius`` of the line's span."""
+    if region not in trees:
+        trees[region] = cKDTree(points[member])
+    samples = origin + np.outer(np.arange(span[0], span[1] + radius, radius), direction)
+    near = trees[region].query_ball_point(samples, 1.5 * radius)
+    idx = np.unique(np.concatenate([np.zeros(0, np.int64), *near]).astype(np.int64))
+    p = points[member[idx]] - origin
+    t = p @ direction
+    perp = p - np.outer(t, direction)
     return t[np.einsum("ij,ij->i", perp, perp) <= radius * radius]
 
 

@@ -38,20 +38,21 @@ class Voxels:
     centroids: np.ndarray  # (V, 3)
     normals: np.ndarray  # (V, 3) unit
     curvature: np.ndarray  # (V,) lambda_min / sum(lambda), inf for too few points
+    size_m: float
 
 
 @dataclass(frozen=True)
 class Planes:
     """Planar regions: ``labels`` (P,) int64 region of each point (-1: none), per region ``normals`` (R, 3),
     ``centroids`` (R, 3), ``counts`` (R,), ``pairs`` (Q, 2) int64 regions that touch, and the estimated
-    point spacing on the surfaces ``spacing_m``."""
+    point spacing of each region ``spacing_m`` (R,) float64."""
 
     labels: np.ndarray
     normals: np.ndarray
     centroids: np.ndarray
     counts: np.ndarray
     pairs: np.ndarray
-    spacing_m: float
+    spacing_m: np.ndarray
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
@@ -76,10 +77,13 @@ def fit_planes(points: np.ndarray, group: np.ndarray, num_groups: int) -> tuple[
     cov = np.empty((num_groups, 3, 3))
     for i, j in itertools.combinations_with_replacement(range(3), 2):
         cov[:, i, j] = cov[:, j, i] = np.bincount(group, d[:, i] * d[:, j], num_groups) / safe[:, 0]
-    eigval, eigvec = np.linalg.eigh(cov)
-    curvature = eigval[:, 0] / np.maximum(eigval.sum(axis=1), 1e-300)
-    curvature[counts < 3] = np.inf
-    return counts.astype(np.int64), centroids, eigvec[:, :, 0], curvature
+    normals = np.zeros((num_groups, 3))
+    curvature = np.full(num_groups, np.inf)
+    fit = counts >= 3  # most voxels of a sparse scan hold one or two points: no eigen-solve for those
+    eigval, eigvec = np.linalg.eigh(cov[fit])
+    normals[fit] = eigvec[:, :, 0]
+    curvature[fit] = eigval[:, 0] / np.maximum(eigval.sum(axis=1), 1e-300)
+    return counts.astype(np.int64), centroids, normals, curvature
 
 
 def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
@@ -97,7 +101,7 @@ def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
         pos = np.minimum(np.searchsorted(uniq, target), len(uniq) - 1)
         neighbors[:, k] = np.where(uniq[pos] == target, pos, -1)
     counts, centroids, normals, curvature = fit_planes(points, of_point, len(uniq))
-    return Voxels(vox - 1, of_point, neighbors, counts, centroids, normals, curvature)
+    return Voxels(vox - 1, of_point, neighbors, counts, centroids, normals, curvature, voxel_m)
 
 
 def _edges(voxels: Voxels) -> tuple[np.ndarray, np.ndarray]:
@@ -216,43 +220,74 @@ def _assign_points(points: np.ndarray, voxels: Voxels, voxel_labels: np.ndarray,
 def segment_planes(
     points: np.ndarray, config: Lines3DConfig | None = None, progress: Callable[[str], None] | None = None
 ) -> Planes:
-    """Returns the planar regions of (P, 3) float64 local points (metres), largest region first."""
+    """Returns the planar regions of (P, 3) float64 local points (metres), largest region first.
+
+    Scanner density falls with range, so regions grow at several voxel sizes (voxel_m x 1, 2, 4, ...):
+    the points no finer region took are tried again with coarser voxels, which hold enough of them.
+    """
     config = config or Lines3DConfig()
     if progress:
         progress("normals")
-    voxels = build_voxels(points, config.voxel_m)
-    # sparse clouds: grow the voxels until a typical one holds enough points for a plane fit
+    labels = np.full(len(points), -1, dtype=np.int64)
     voxel_m = config.voxel_m
-    while np.median(voxels.counts) < config.min_voxel_points and voxel_m < 4 * config.voxel_m:
-        voxel_m *= 1.5
-        voxels = build_voxels(points, voxel_m)
-    if voxel_m != config.voxel_m:
-        logger.info("sparse cloud: voxel size %.3f m instead of %.3f m", voxel_m, config.voxel_m)
-        config = replace(config, voxel_m=voxel_m)
-    if progress:
-        progress("regions")
-    voxel_labels = _relabel(grow_regions(voxels, config), 1)
-    if (voxel_labels < 0).all():
+    for level in range(max(config.scales, 1)):
+        todo = np.flatnonzero(labels < 0)
+        if len(todo) < config.min_region_points:
+            break
+        if level == 0 and progress:
+            progress("regions")
+        found = _regions_at(points[todo], replace(config, voxel_m=voxel_m))
+        labels[todo[found >= 0]] = found[found >= 0] + labels.max() + 1
+        voxel_m *= 2.0
+    if (labels < 0).all():
         return _empty_planes(len(points))
-    labels = _assign_points(points, voxels, voxel_labels, config)
-    labels = _relabel(_merge_coplanar(labels, points, voxels, config), 1)
-    # re-assign against the merged planes so points follow the final plane fits
-    voxel_major = _majority(voxels.of_point, labels, len(voxels.keys))
-    labels = _relabel(_assign_points(points, voxels, voxel_major, config), config.min_region_points)
+    # merge across scales on a grid coarse enough to join sparse neighbours, fine enough for details
+    grid = build_voxels(points, min(0.5 * voxel_m, 4.0 * config.voxel_m))
+    labels = _relabel(_merge_coplanar(labels, points, grid, config), 1)
+    labels = _relabel(_drop_off_plane(points, labels, config.distance_m), config.min_region_points)
     if (labels < 0).all():
         return _empty_planes(len(points))
     num = int(labels.max()) + 1
     counts, cen, nrm, _ = fit_planes(points[labels >= 0], labels[labels >= 0], num)
-    pairs = _touching(voxels, labels)
-    logger.debug("%d voxels, %d regions, %d touching pairs", len(voxels.keys), num, len(pairs))
-    return Planes(labels, nrm, cen, counts, pairs[:, :2], _spacing(voxels, config))
+    pairs = _touching(grid, labels)
+    logger.debug("%d regions, %d touching pairs", num, len(pairs))
+    return Planes(labels, nrm, cen, counts, pairs[:, :2], _region_spacing(grid, labels, num))
 
 
-def _spacing(voxels: Voxels, config: Lines3DConfig) -> float:
-    """Returns the typical point spacing (m): a plane crossing a voxel covers about voxel_m**2 of it."""
-    planar = (voxels.counts >= config.min_voxel_points) & (voxels.curvature <= config.max_curvature)
-    counts = voxels.counts[planar] if planar.any() else np.maximum(voxels.counts, 1)
-    return float(config.voxel_m / np.sqrt(np.median(counts)))
+def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
+    """Returns (P,) int64 labels of the regions grown with voxels of config.voxel_m (-1: none)."""
+    voxels = build_voxels(points, config.voxel_m)
+    voxel_labels = _relabel(grow_regions(voxels, config), 1)
+    if (voxel_labels < 0).all():
+        return np.full(len(points), -1, dtype=np.int64)
+    labels = _assign_points(points, voxels, voxel_labels, config)
+    # regions too small at this scale leave their points to the next, coarser one
+    return _relabel(labels, config.min_region_points)
+
+
+def _drop_off_plane(points: np.ndarray, labels: np.ndarray, distance_m: float) -> np.ndarray:
+    """Returns labels with points farther than distance_m from their region's (refitted) plane set to -1."""
+    ok = labels >= 0
+    _, cen, nrm, _ = fit_planes(points[ok], labels[ok], int(labels.max()) + 1)
+    out = labels.copy()
+    idx = np.flatnonzero(ok)
+    dist = np.abs(np.einsum("ij,ij->i", points[idx] - cen[labels[idx]], nrm[labels[idx]]))
+    out[idx[dist > distance_m]] = -1
+    return out
+
+
+def _region_spacing(voxels: Voxels, labels: np.ndarray, num: int) -> np.ndarray:
+    """Returns (R,) float64 typical point spacing (m) of each region: a plane crossing a voxel of size v
+    covers about v^2 of it, so v / sqrt(count) over the region's voxels (median: edge voxels are partial)."""
+    ok = labels >= 0
+    keys, counts = np.unique(voxels.of_point[ok] * num + labels[ok], return_counts=True)
+    region = keys % num
+    spacing = voxels.size_m / np.sqrt(counts)
+    order = np.lexsort((spacing, region))
+    region, spacing = region[order], spacing[order]
+    start = np.searchsorted(region, np.arange(num))
+    stop = np.searchsorted(region, np.arange(num), side="right")
+    return spacing[(start + stop - 1) // 2]  # the (lower) median of each region's run
 
 
 def _majority(of_point: np.ndarray, labels: np.ndarray, num_voxels: int) -> np.ndarray:
@@ -273,4 +308,6 @@ def _majority(of_point: np.ndarray, labels: np.ndarray, num_voxels: int) -> np.n
 def _empty_planes(num_points: int) -> Planes:
     empty = np.zeros((0, 3))
     no_pairs = np.zeros((0, 2), np.int64)
-    return Planes(np.full(num_points, -1, dtype=np.int64), empty, empty, np.zeros(0, np.int64), no_pairs, 0.0)
+    return Planes(
+        np.full(num_points, -1, dtype=np.int64), empty, empty, np.zeros(0, np.int64), no_pairs, np.zeros(0)
+    )
