@@ -28,7 +28,7 @@ _ALBEDO = {
     "ground": (0.36, 0.37, 0.38),
     "ledge": (0.80, 0.84, 0.86),
 }
-_TEXTURE_AMPLITUDE = {"wall": 0.07, "window": 0.25, "door": 0.10, "roof": 0.1, "ground": 0.12, "ledge": 0.04}
+_TEXTURE_AMPLITUDE = {"wall": 0.07, "window": 0.25, "door": 0.10, "roof": 0.1, "ground": 0.08, "ledge": 0.04}
 _SKY_ZENITH = np.array([0.78, 0.50, 0.30])  # BGR
 _SKY_HORIZON = np.array([0.95, 0.88, 0.80])
 _FAR_GROUND = np.array([0.40, 0.45, 0.42])
@@ -178,6 +178,12 @@ def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator,
     wall = building.face_kind == "wall"
     albedo[wall] *= tint[building.face_block[wall] + 1]
     albedo *= rng.uniform(0.9, 1.1, size=(len(albedo), 1))
+    # window and door reveals (wall quads as narrow as the recess) lie in the opening's shadow
+    quads = building.faces
+    narrow = np.minimum(
+        np.linalg.norm(quads[:, 1] - quads[:, 0], axis=1), np.linalg.norm(quads[:, 3] - quads[:, 0], axis=1)
+    )
+    albedo[wall & (narrow < 0.2)] *= 0.55
     az, el = math.radians(cfg.sun_azimuth_deg), math.radians(cfg.sun_elevation_deg)
     sun = np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
     fill = np.array([math.cos(az + 1.9), math.sin(az + 1.9), 0.6])  # sky is brighter away from the sun
