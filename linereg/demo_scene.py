@@ -19,8 +19,9 @@ from .scanner import ScanConfig, scan
 log = logging.getLogger(__name__)
 
 SCANNER_HEIGHT_M = 1.7
-# ~1 M points in a few seconds: 0.25 degree rays from 4 positions give ~2 M hits before subsampling
-DEMO_SCAN = ScanConfig(angular_step_deg=0.25, target_points=1_000_000)
+# ~1 M points in a few seconds: 0.22 degree rays from 4 positions, subsampled; rays steeper than 30 degrees
+# down would only add the ground right round each tripod
+DEMO_SCAN = ScanConfig(angular_step_deg=0.22, min_elevation_deg=-30.0, target_points=1_000_000)
 
 
 @dataclass(frozen=True)
