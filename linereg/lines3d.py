@@ -137,9 +137,39 @@ def contour_segments(
     ]
     lines2d_all = np.concatenate([np.zeros((0, 4)), *lines2d])
     uv_lines = (lo + (lines2d_all.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
-    uv_lines = refine_edges(uv, uv_lines, 2.0 * cell)
+    uv_lines = snap_directions(refine_edges(uv, uv_lines, 2.0 * cell), config.snap_angle_deg)
     xyz = centroid + uv_lines.reshape(-1, 2) @ basis
     return xyz.reshape(-1, 6)
+
+
+def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
+    """Returns (k, 4) 2D lines of one region turned about their midpoints onto the region's dominant
+    directions: lines within max_angle_deg of the longest free line share its direction, averaged with
+    weights length^2 (a facade's long outline fixes the direction of its short window edges)."""
+    if max_angle_deg <= 0 or len(lines) < 2:
+        return lines
+    d = lines[:, 2:] - lines[:, :2]
+    length = np.linalg.norm(d, axis=1)
+    theta = np.arctan2(d[:, 1], d[:, 0])
+    free = np.ones(len(lines), dtype=bool)
+    out = lines.copy()
+    for seed in np.argsort(-length, kind="stable"):
+        if not free[seed]:
+            continue
+        diff = np.abs((theta - theta[seed] + 0.5 * np.pi) % np.pi - 0.5 * np.pi)  # undirected angle
+        members = np.flatnonzero(free & (diff <= np.radians(max_angle_deg)))
+        free[members] = False
+        # mean of undirected angles: average the doubled angles
+        w = length[members] ** 2
+        mean = 0.5 * np.arctan2(
+            (w * np.sin(2 * theta[members])).sum(), (w * np.cos(2 * theta[members])).sum()
+        )
+        direction = np.array([np.cos(mean), np.sin(mean)])
+        sign = np.sign(d[members] @ direction)[:, None]
+        mid = 0.5 * (lines[members, :2] + lines[members, 2:])
+        half = 0.5 * length[members, None] * sign * direction
+        out[members] = np.concatenate([mid - half, mid + half], axis=1)
+    return out
 
 
 def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
