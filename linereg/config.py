@@ -18,6 +18,7 @@ class Lines3DConfig:
 
     downsample_m: float = 0.0  # optional voxel downsampling before anything else; 0 = keep every point
     voxel_m: float = 0.1  # cube of the local plane fits (normals by PCA) that regions grow over
+    scales: int = 4  # points left over are grown again with voxels 2, 4, 8 x voxel_m (sparse, far surfaces)
     min_voxel_points: int = 5  # fewer points cannot fix a plane
     max_curvature: float = 0.03  # lambda_min / sum(lambda) above this: the voxel straddles a crease
     angle_deg: float = 10.0  # neighbouring voxel normals closer than this grow one region
@@ -25,8 +26,10 @@ class Lines3DConfig:
     merge_angle_deg: float = 5.0  # adjacent regions this parallel ...
     merge_distance_m: float = 0.05  # ... and this close to each other's plane are one
     min_region_points: int = 60
+    min_region_area_m2: float = 0.1  # smaller regions (clutter) give neither contours nor creases
     cell_m: float = 0.0  # raster cell of a region's contour; 0 = 2 x the estimated point spacing
     approx_cells: float = 1.5  # polygon approximation tolerance of a contour (cells)
+    snap_angle_deg: float = 5.0  # contour lines this close to a region's dominant direction take it; 0 = off
     min_length_m: float = 0.3  # shorter segments are dropped
     crease_min_angle_deg: float = 20.0  # planes meeting at a larger angle give an intersection line
     collinear_angle_deg: float = 2.0  # segments this parallel ...
