@@ -87,15 +87,29 @@ def _stretch(gray: np.ndarray) -> np.ndarray:
 
 
 def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
-    """Returns (N, 4) float64 LSD segments in pixels (pixel (0, 0) centred at 0) of a (H, W) uint8 image."""
-    scale = min(config.lsd_scale, math.sqrt(config.max_work_pixels / gray.size))
-    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(gray)[0]
+    """Returns (N, 4) float64 LSD segments in pixels (pixel (0, 0) centred at 0) of a (H, W) uint8 image.
+
+    LSD subsamples by ``lsd_scale`` itself, further for images above ``max_work_pixels``; below half
+    size its Gaussian gets costly, so very large images are first halved by area averaging (the
+    endpoints are scaled back).
+    """
+    total = min(config.lsd_scale, math.sqrt(config.max_work_pixels / gray.size))  # of the full image
+    small, scale = gray, total
+    while scale < 0.5 and min(small.shape) >= 64:
+        half = ((small.shape[1] + 1) // 2, (small.shape[0] + 1) // 2)
+        small = cv2.resize(small, half, interpolation=cv2.INTER_AREA)
+        scale = total * gray.shape[1] / small.shape[1]
+    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(small)[0]
     if found is None:
         return np.zeros((0, 4))
     segments = np.asarray(found, dtype=np.float64).reshape(-1, 4)  # OpenCV 4: (N, 1, 4); OpenCV 5: (N, 4)
     # OpenCV divides subsampled coordinates by the scale without the half-pixel shift of the resize,
     # which moves every edge by 0.5 / scale - 0.5 px towards the origin (0.21 px at 0.7); undo it.
-    return segments + (0.5 / scale - 0.5)
+    segments += 0.5 / scale - 0.5
+    if small is not gray:  # pixel centres: x_full + 0.5 = (x_small + 0.5) * (full size / small size)
+        factor = np.array([gray.shape[1] / small.shape[1], gray.shape[0] / small.shape[0]] * 2)
+        segments = (segments + 0.5) * factor - 0.5
+    return segments
 
 
 def merge_collinear(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig) -> np.ndarray:
