@@ -178,7 +178,7 @@ def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
     Along the line, bins of ``band`` length: the outermost of n points spread uniformly over
     [-band, e] lies on average (e + band) / (n + 1) inside the edge e, so e = o_max + (o_max + band) / n
     per bin; a least-squares line through the bins' e gives offset and angle. Lines this would tilt by
-    more than 10 degrees are dropped. uv: (n, 2) region points in plane coordinates; lines: (k, 4).
+    more than 10 degrees, or with most bins off the fitted edge, are dropped. uv: (n, 2) region points in plane coordinates; lines: (k, 4).
     """
     if len(lines) == 0:
         return lines
@@ -201,6 +201,9 @@ def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
         fit = _edge_line(t, outward * s, band)
         if fit is None:
             continue
+        if fit[2] < 0.5 * (length - band) / band:  # most of the line has no straight edge behind it
+            keep_line[k] = False
+            continue
         e_a, e_b = np.clip(fit[1] + fit[0] * np.array([0.0, length]), -band, band)
         if abs(e_b - e_a) > length * _MAX_TILT:  # not one straight edge
             keep_line[k] = False
@@ -217,8 +220,9 @@ def _remove_small(image: np.ndarray, min_area: float) -> np.ndarray:
     return np.where(keep[labels], 255, 0).astype(np.uint8)
 
 
-def _edge_line(t: np.ndarray, o: np.ndarray, band: float) -> tuple[float, float] | None:
-    """Returns (slope, intercept) of the edge e(t) behind points at (t, outward offset o), or None."""
+def _edge_line(t: np.ndarray, o: np.ndarray, band: float) -> tuple[float, float, int] | None:
+    """Returns (slope, intercept, bins on it) of the edge e(t) behind points at (t, outward offset o):
+    bins on it are the band-long stretches whose edge estimate lies within band / 2 of the line."""
     bins = np.floor((t - t.min()) / band).astype(np.int64)
     count = np.bincount(bins)
     top = np.full(len(count), -np.inf)
@@ -234,7 +238,8 @@ def _edge_line(t: np.ndarray, o: np.ndarray, band: float) -> tuple[float, float]
     inliers = residual <= max(2.5 * np.median(residual), 1e-9)
     if 2 <= inliers.sum() < len(edge):  # a bin reaching into a neighbouring structure
         slope, intercept = np.polyfit(centre[inliers], edge[inliers], 1, w=weight[inliers])
-    return float(slope), float(intercept)
+    on_line = int((np.abs(edge - (slope * centre + intercept)) <= 0.5 * band).sum())
+    return float(slope), float(intercept), on_line
 
 
 def _straight_runs(
