@@ -147,14 +147,18 @@ def print_results(results: dict[str, Any]) -> None:
     stats, met = results["summary"]["stats"], results["summary"]["targets_met"]
     lines = (
         ("localized", f"{stats['num_success']}/{stats['n']}", "all", met["success_rate"]),
-        ("median R_e", f"{stats['rotation_deg_median']:.3f} deg", "<= 0.5 deg", met["rotation_deg_median"]),
-        ("median pos err", f"{stats['position_m_median']:.3f} m", "<= 0.2 m", met["position_m_median"]),
+        ("median R_e", _value(stats["rotation_deg_median"], "deg"), "<= 0.5 deg", met["rotation_deg_median"]),
+        ("median pos err", _value(stats["position_m_median"], "m"), "<= 0.2 m", met["position_m_median"]),
         ("whole demo", f"{stats['whole_s']:.1f} s", "<= 60 s", met["whole_s"]),
     )
     for name, value, target, ok in lines:
         print(f"{name:>15}: {value:>12}  target {target:<11} {'met' if ok else 'NOT met'}")
     if results["summary"]["failure_reasons"]:
         print(f"failures: {results['summary']['failure_reasons']}")
+
+
+def _value(x: float, unit: str) -> str:
+    return "-" if np.isnan(x) else f"{x:.3f} {unit}"
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
