@@ -46,3 +46,19 @@ def test_cloud_seen_through_the_true_pose_fills_the_image(folder):
     # the points cover the image broadly (KITTI's Velodyne: the lower part only)
     cells = np.unique((uv[inside] // 40).astype(int), axis=0)
     assert len(cells) > 0.3 * (item.camera.width // 40) * (item.camera.height // 40)
+
+
+def test_kitti_frame_runs_through_map_and_localization():
+    """The whole path on a real LiDAR scan: a map, then a Registration (no pose accuracy asserted: the
+    pipeline does not localize this sparse single sweep yet; see ``linereg bench real``)."""
+    from linereg.bench.real import build_map, localize_one
+
+    folder = DATA / "kitti_obj_000002"
+    if folder not in FOLDERS:
+        pytest.skip("kitti_obj_000002 not in the data folder")
+    item = read_scene(folder)[0]
+    line_map, record = build_map(item.cloud_path)
+    assert record["num_segments"] > 100
+    result, _ = localize_one(item, line_map, (5.0, 0.3))
+    assert result["num_lines2d"] > 50 and result["gt_inliers"] > 0
+    assert result["success"] or result["reason"]
