@@ -7,14 +7,16 @@ replaces a dead or hung child. A watcher thread answers ``timeout`` when a job's
 
 from __future__ import annotations
 
+import contextlib
 import heapq
 import itertools
 import logging
 import multiprocessing as mp
+import os
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
 
@@ -26,6 +28,24 @@ from .worker import worker_main
 
 log = logging.getLogger(__name__)
 _CTX = mp.get_context("spawn")  # never fork: the zenoh session runs native threads
+
+
+# the workers are the parallelism: a BLAS/OpenMP pool per worker would oversubscribe the cores
+_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+_ENV_LOCK = threading.Lock()
+
+
+@contextlib.contextmanager
+def _one_thread_env() -> Iterator[None]:
+    """Sets the thread-pool variables a spawned child inherits to 1 (unless the operator set them)."""
+    with _ENV_LOCK:
+        added = [k for k in _THREAD_VARS if k not in os.environ]
+        os.environ.update({k: "1" for k in added})
+        try:
+            yield
+        finally:
+            for k in added:
+                os.environ.pop(k, None)
 
 
 def _nothing(ok: bool, reply: bytes, code: str) -> None:
@@ -143,7 +163,8 @@ class WorkerPool:
             target=worker_main, args=(child, self.loader, self.loader_args, self.limits),
             name=f"linereg-worker-{index}", daemon=True,
         )  # fmt: skip
-        proc.start()
+        with _one_thread_env():
+            proc.start()
         child.close()  # so that the parent sees EOF when the child dies
         return proc, parent
 
