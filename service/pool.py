@@ -243,8 +243,11 @@ class WorkerPool:
     def _run(self, index: int, job: Job) -> None:
         """Runs one job on the slot's worker; answers ``internal`` and replaces the worker if it dies."""
         proc, conn, _ = self._procs[index]
+        payload = job.payload  # an answered job's payload is b"", which a worker reads as "stop"
+        if not payload:
+            return
         try:
-            conn.send_bytes(job.payload)
+            conn.send_bytes(payload)
             hard_deadline = job.deadline + self.hard_grace_s
             while not wait([conn, proc.sentinel], timeout=0.5):
                 if time.monotonic() > hard_deadline:
