@@ -86,9 +86,13 @@ class Service:
         self.info["name"] = self.map_name
         self.info["instance"] = self.instance
         cfg = self.config
-        self.session = zenoh.open(
-            session_config(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config, cfg.multicast)
-        )
+        try:
+            self.session = zenoh.open(
+                session_config(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config, cfg.multicast)
+            )
+        except Exception:  # e.g. the port is taken: do not leave the workers behind
+            self.pool.close(drain_timeout_s=0.0)
+            raise
         routes = [
             (keys.localize_key(self.map_name), self._on_localize),
             (keys.instance_localize_key(self.map_name, self.instance), self._on_localize),

@@ -258,3 +258,11 @@ def test_local_service_context_for_the_demo():
     with local_service("unused", loader="service.fake:load_fake_engine") as c:
         lines = segments_with([1.0, 1.0, 2.0, 2.0])
         assert np.allclose(c.localize_segments(lines, CAMERA).cam_from_world, expected_pose(lines))
+
+
+def test_taken_port_fails_cleanly_without_leaving_workers(service):
+    config = fake_config(service.endpoint, workers=1)  # the module's service listens there already
+    broken = Service(config)
+    with pytest.raises(Exception, match=r"(?i)address|bind|listen|endpoint"):
+        broken.start()
+    assert broken.pool.alive() == 0
