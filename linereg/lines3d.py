@@ -22,6 +22,7 @@ from .planes import Planes, segment_planes, voxel_downsample
 logger = logging.getLogger(__name__)
 
 _MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
+_ONE_SIDED = 0.8  # share of a region's points near a crease that must lie on the same side of it
 _MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
 
 
@@ -336,11 +337,23 @@ def crease_segments(
         span = _overlap(boxes[a], boxes[b], origin, direction, 3 * cell)
         if span is None:
             continue
-        ta = _near_line(points, members[a], trees, a, origin, direction, span, 3 * cell)
-        tb = _near_line(points, members[b], trees, b, origin, direction, span, 3 * cell)
+        ta, perp_a = _near_line(points, members[a], trees, a, origin, direction, span, 3 * cell)
+        tb, perp_b = _near_line(points, members[b], trees, b, origin, direction, span, 3 * cell)
         for t0, t1 in _common_runs(ta, tb, cell, config):
-            out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
+            if _one_sided(ta, perp_a, t0, t1) and _one_sided(tb, perp_b, t0, t1):
+                out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
     return np.array(out).reshape(-1, 6)
+
+
+def _one_sided(t: np.ndarray, perp: np.ndarray, t0: float, t1: float) -> bool:
+    """Returns whether a region's points near a crease run lie on one side of it: a crease bounds both
+    regions, while facets of a rough surface that cross mid-way have points on both sides."""
+    inside = (t >= t0) & (t <= t1)
+    if not inside.any():
+        return False
+    p = perp[inside]
+    side = p @ (p.sum(axis=0) / max(np.linalg.norm(p.sum(axis=0)), 1e-12))
+    return bool(max((side > 0).mean(), (side < 0).mean()) >= _ONE_SIDED)
 
 
 def _overlap(box_a, box_b, origin: np.ndarray, direction: np.ndarray, margin: float):
@@ -369,8 +382,9 @@ def _near_line(
     direction: np.ndarray,
     span: tuple[float, float],
     radius: float,
-) -> np.ndarray:
-    """Returns the (k,) line parameters of the region's points within ``radius`` of the line's span."""
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((k,) line parameters, (k, 3) offsets from the line) of the region's points within
+    ``radius`` of the line's span."""
     if region not in trees:
         trees[region] = cKDTree(points[member])
     samples = origin + np.outer(np.arange(span[0], span[1] + radius, radius), direction)
@@ -379,7 +393,8 @@ def _near_line(
     p = points[member[idx]] - origin
     t = p @ direction
     perp = p - np.outer(t, direction)
-    return t[np.einsum("ij,ij->i", perp, perp) <= radius * radius]
+    near_line = np.einsum("ij,ij->i", perp, perp) <= radius * radius
+    return t[near_line], perp[near_line]
 
 
 def _common_runs(
