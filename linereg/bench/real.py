@@ -13,6 +13,7 @@ Success here is a pose within ``--max-rot-deg`` and ``--max-pos-m`` of the groun
 ``|t_e| / |t_GT| < 0.1`` is meaningless when the camera sits near the world origin). Per image the table
 also gives ``gt_inliers``: how many detected 2D lines match a map segment at the ground-truth pose (the
 pipeline's own inlier test) -- few means the map and the image share too little for any pose search.
+With ``--overlay``, each image gets the overlay of its estimate and one of the map at the true pose (``_gt``).
 """
 
 from __future__ import annotations
@@ -82,14 +83,15 @@ def read_scene(folder: Path) -> list[RealImage]:
     return images
 
 
-def gt_inliers(lines2d: np.ndarray, line_map: Any, camera: Any, cam_from_world: np.ndarray) -> int:
-    """Returns how many (N, 4) undistorted 2D segments have an inlier map segment at the true pose."""
+def gt_matches(lines2d: np.ndarray, line_map: Any, camera: Any, cam_from_world: np.ndarray) -> np.ndarray:
+    """Returns (K, 2) int64 ``(i2d, j3d)``: the (N, 4) undistorted 2D segments' inlier map segments at the
+    true pose (the pipeline's own test, ``matching.match_segments``)."""
     from ..config import MatchConfig
     from ..matching import match_segments
 
     if not len(lines2d) or not len(line_map.segments):
-        return 0
-    return len(match_segments(lines2d, line_map.segments, camera, cam_from_world, MatchConfig()))
+        return np.zeros((0, 2), dtype=np.int64)
+    return match_segments(lines2d, line_map.segments, camera, cam_from_world, MatchConfig())
 
 
 def localize_one(item: RealImage, line_map: Any, bounds: tuple[float, float]) -> tuple[dict[str, Any], Any]:
@@ -115,7 +117,7 @@ def localize_one(item: RealImage, line_map: Any, bounds: tuple[float, float]) ->
         "image": item.image_path.name,
         "map": item.cloud_path.name,
         "num_lines2d": len(lines2d),
-        "gt_inliers": gt_inliers(lines2d, line_map, item.camera.undistorted(), item.cam_from_world),
+        "gt_inliers": len(gt_matches(lines2d, line_map, item.camera.undistorted(), item.cam_from_world)),
         "ambiguity": result.ambiguity,
         "stages_ms": {"lines2d": 1e3 * detect_s} | {k: 1e3 * v for k, v in result.timings.items()},
     }
@@ -181,12 +183,17 @@ def run_scene(folder: Path, bounds: tuple[float, float], overlay_dir: Path | Non
 
 
 def _write_overlay(path: Path, image, item: RealImage, lines2d, line_map, result) -> None:
+    """Writes the overlay of the estimate and, beside it (``*_gt.png``), the map seen from the true pose."""
     from .. import io
     from ..overlay import draw_overlay
+    from ..registration import Registration
 
-    io.write_image_atomic(
-        path, draw_overlay(image, item.camera.undistorted(), lines2d, line_map.segments, result)
-    )
+    camera = item.camera.undistorted()
+    io.write_image_atomic(path, draw_overlay(image, camera, lines2d, line_map.segments, result))
+    matches = gt_matches(lines2d, line_map, camera, item.cam_from_world)
+    truth = Registration(True, cam_from_world=item.cam_from_world, matches=matches, num_inliers=len(matches))
+    picture = draw_overlay(image, camera, lines2d, line_map.segments, truth)
+    io.write_image_atomic(path.with_name(path.stem + "_gt.png"), picture)
 
 
 IMAGE_COLUMNS = (
