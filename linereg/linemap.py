@@ -46,7 +46,8 @@ class LineMap:
         self._axes = np.asarray(grid["axes"], dtype=np.int64)
         self._origin = np.asarray(grid["origin"], dtype=np.float64)
         self.tile_m = float(grid["tile_m"])
-        self._keys, self._ptr, self._members = index if index is not None else _tile_index(segments, grid)
+        index = index if index is not None else _tile_index(segments, grid)
+        self._keys, self._ptr, self._members = index
         self._cells = np.stack([self._keys // _SPAN, self._keys % _SPAN], axis=1) - _SPAN // 2  # (T, 2) i, j
 
     # ------------------------------------------------------------------------------------ construction
@@ -70,7 +71,7 @@ class LineMap:
         config = config or Lines3DConfig()
         points = check_points(points)
         segments = extract(points, config, progress=progress)
-        extra = {"point_count": len(points), "extraction": asdict(config)} | metadata
+        extra: dict[str, Any] = {"point_count": len(points), "extraction": asdict(config)} | metadata
         return cls.from_segments(
             segments, name=name, parallel_config=parallel_config, progress=progress, **extra
         )
