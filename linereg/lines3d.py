@@ -22,6 +22,7 @@ from .planes import Planes, segment_planes, voxel_downsample
 logger = logging.getLogger(__name__)
 
 _MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
+_CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
 _ONE_SIDED = 0.8  # share of a region's points near a crease that must lie on the same side of it
 _MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
 
@@ -53,7 +54,7 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     if len(planes.counts) == 0:
         return np.zeros((0, 6))
     # raster cells follow each region's own density (a scanner's falls with range)
-    cells = np.full(len(planes.counts), config.cell_m) if config.cell_m > 0 else 2.0 * planes.spacing_m
+    cells = np.full(len(planes.counts), config.cell_m) if config.cell_m > 0 else _CELL_SPACINGS * planes.spacing_m
     cells = np.maximum(cells, 1e-3)
     order = np.argsort(planes.labels, kind="stable")
     bounds = np.searchsorted(planes.labels[order], np.arange(len(planes.counts) + 1))
