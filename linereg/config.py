@@ -27,7 +27,7 @@ class Lines3DConfig:
     merge_distance_m: float = 0.05  # ... and this close to each other's plane are one
     min_region_points: int = 60
     min_region_area_m2: float = 0.1  # smaller regions (clutter) give neither contours nor creases
-    cell_m: float = 0.0  # raster cell of a region's contour; 0 = 2 x the estimated point spacing
+    cell_m: float = 0.0  # raster cell of a region's contour; 0 = 1.5 x the region's estimated point spacing
     approx_cells: float = 1.5  # polygon approximation tolerance of a contour (cells)
     snap_angle_deg: float = 5.0  # contour lines this close to a region's dominant direction take it; 0 = off
     min_length_m: float = 0.3  # shorter segments are dropped
