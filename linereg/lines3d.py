@@ -54,7 +54,9 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     if len(planes.counts) == 0:
         return np.zeros((0, 6))
     # raster cells follow each region's own density (a scanner's falls with range)
-    cells = np.full(len(planes.counts), config.cell_m) if config.cell_m > 0 else _CELL_SPACINGS * planes.spacing_m
+    cells = (
+        np.full(len(planes.counts), config.cell_m) if config.cell_m > 0 else _CELL_SPACINGS * planes.spacing_m
+    )
     cells = np.maximum(cells, 1e-3)
     order = np.argsort(planes.labels, kind="stable")
     bounds = np.searchsorted(planes.labels[order], np.arange(len(planes.counts) + 1))
