@@ -98,7 +98,7 @@ def _localize_undistorted(
     with timer("culling"):
         position = None if prior is None else prior.position
         radius = None if prior is None else prior.radius_m
-        visible = line_map.visible(camera, prior_position=position, radius_m=radius)
+        visible = line_map.visible(camera, None, prior_position=position, radius_m=radius)
         lines3d = line_map.segments[visible]
         clusters = subset_clusters(line_map.clusters, visible, segment_lengths(lines3d))
     if len(lines3d) < config.min_lines3d:
