@@ -18,7 +18,11 @@ SUBCOMMANDS = ("demo", "bench", "map", "localize", "serve", "query")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="linereg", description=__doc__.splitlines()[0])
+    parser = argparse.ArgumentParser(
+        prog="linereg",
+        description="Camera pose in an untextured 3D point-cloud map from line segments alone.",
+        epilog="Start with `linereg demo`; `linereg COMMAND --help` for each command.",
+    )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for name in SUBCOMMANDS:
