@@ -29,7 +29,9 @@ class Lines3DConfig:
     min_region_area_m2: float = 0.1  # smaller regions (clutter) give neither contours nor creases
     cell_m: float = 0.0  # raster cell of a region's contour; 0 = 1.5 x the region's estimated point spacing
     approx_cells: float = 1.5  # polygon approximation tolerance of a contour (cells)
-    snap_angle_deg: float = 5.0  # contour lines this close to a region's dominant direction take it; 0 = off
+    # contour lines this close to a region's dominant direction take it (a raster staircase, one cell in 9,
+    # tilts a line 6 degrees); 0 = off
+    snap_angle_deg: float = 10.0
     min_length_m: float = 0.3  # shorter segments are dropped
     crease_min_angle_deg: float = 20.0  # planes meeting at a larger angle give an intersection line
     collinear_angle_deg: float = 2.0  # segments this parallel ...
