@@ -53,9 +53,12 @@ class RealImage:
 
 
 def scene_folders(data_dir: Path) -> list[Path]:
-    """Returns the sub-folders of ``data_dir`` holding both ``cameras.json`` and ``cloud.ply``, sorted."""
+    """Returns the sub-folders of ``data_dir`` holding both ``cameras.json`` and ``cloud.ply``, sorted
+    (``[data_dir]`` itself when it is such a scene folder)."""
     if not data_dir.is_dir():
         return []
+    if (data_dir / "cameras.json").is_file() and (data_dir / "cloud.ply").is_file():
+        return [data_dir]
     return sorted(
         d for d in data_dir.iterdir() if (d / "cameras.json").is_file() and (d / "cloud.ply").is_file()
     )
@@ -222,7 +225,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
         "--data",
         type=Path,
         default=None,
-        help=f"data folder (default ${DATA_ENV} or shared/data beside the repository)",
+        help=f"data folder or one scene folder (default ${DATA_ENV} or shared/data beside the repository)",
     )
     parser.add_argument("--out", type=Path, default=Path("bench-results/real"), help="output directory")
     parser.add_argument(
