@@ -81,9 +81,53 @@ def _read_open3d(path: Path) -> np.ndarray:
     from ._open3d import open3d
 
     o3d = open3d()
-    # open3d reports a corrupt file on stderr and returns an empty cloud, caught by the caller
+    expected = _ply_vertex_count(path) if path.suffix.lower() == ".ply" else None
+    # open3d reports a corrupt file on stderr and returns an empty or partial cloud: checked here and by the caller
     cloud = o3d.io.read_point_cloud(str(path), format="auto", remove_nan_points=False)
-    return np.asarray(cloud.points, dtype=np.float64)
+    points = np.asarray(cloud.points, dtype=np.float64)
+    if expected is not None and len(points) != expected:
+        raise FileFormatError(f"{path}: corrupt PLY: header declares {expected} vertices, read {len(points)}")
+    return points
+
+
+_PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2}
+_PLY_SIZES |= {"int": 4, "uint": 4, "int32": 4, "uint32": 4, "float": 4, "float32": 4}
+_PLY_SIZES |= {"double": 8, "float64": 8}
+
+
+def _ply_vertex_count(path: Path) -> int:
+    """Returns the vertex count a PLY header declares, after checking x/y/z exist and a binary body fits."""
+    with open(path, "rb") as f:
+        if f.readline().strip() != b"ply":
+            raise FileFormatError(f"{path}: not a PLY file (no 'ply' magic)")
+        header, count, element, props, row = [], 0, None, set(), 0
+        for _ in range(10_000):
+            line = f.readline()
+            if not line:
+                raise FileFormatError(f"{path}: corrupt PLY: the header has no end_header")
+            words = line.decode("ascii", "replace").split()
+            header.append(words)
+            if words[:1] == ["end_header"]:
+                break
+            if words[:1] == ["element"] and len(words) == 3:
+                element = words[1]
+                if element == "vertex":
+                    count = int(words[2])
+            elif words[:1] == ["property"] and element == "vertex" and len(words) >= 3:
+                props.add(words[-1])
+                row += _PLY_SIZES.get(words[1], 0) if words[1] != "list" else 0
+        body = os.path.getsize(path) - f.tell()
+    if not {"x", "y", "z"} <= props:
+        raise FileFormatError(f"{path}: PLY vertices lack x, y, z properties (found {sorted(props)})")
+    binary = any(
+        w[:2] == ["format", "binary_little_endian"] or w[:2] == ["format", "binary_big_endian"]
+        for w in header
+    )
+    if binary and row and body < count * row:
+        raise FileFormatError(
+            f"{path}: truncated PLY: {count} vertices need {count * row} bytes, {body} present"
+        )
+    return count
 
 
 def _read_text(path: Path) -> np.ndarray:

@@ -2,20 +2,24 @@
 
 Localizes many images in one map: a process pool (each worker loads the map once), results saved
 atomically every few images so a killed batch loses nothing and ``--resume`` skips what is done.
+An image that cannot be used (unreadable, corrupt, another size than its camera) does not stop the batch:
+it is recorded as failed, named on stderr, and the command exits with 2 at the end.
 """
 
 from __future__ import annotations
 
 import argparse
+import logging
 import os
 import sys
 import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from ..errors import InvalidInputError
+from ..errors import InvalidInputError, LineregError
 from .progress import Progress
 
+log = logging.getLogger(__name__)
 _worker_state: dict = {}
 
 
@@ -64,7 +68,10 @@ def run(args: argparse.Namespace) -> int:
         io.write_tum(args.tum, [Path(p).name for p, _ in ok], [r["cam_from_world"] for _, r in ok])
     done = sum(r["success"] for r in results.values())
     print(f"localized {done}/{len(results)} images -> {args.out}", file=sys.stderr)
-    return 0
+    bad = {p: r["reason"] for p, r in results.items() if r.get("input_error")}
+    for reason in bad.values():
+        print(f"linereg localize: error: {reason}", file=sys.stderr)
+    return 2 if bad else 0
 
 
 def _camera_for(cameras, image: Path, source: Path):
@@ -121,8 +128,12 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
         result = localize_segments(lines2d, line_map, camera.undistorted())
         result.timings = {"lines2d": detect_s} | result.timings
         result.timings["total"] = result.timings.get("total", 0.0) + detect_s
-    except Exception as e:  # one bad image must not end a batch of thousands
-        return path, {"success": False, "reason": f"{type(e).__name__}: {e}"}
+    except LineregError as e:  # a bad input file: named at the end, the batch goes on
+        message = str(e) if path in str(e) else f"{path}: {e}"
+        return path, {"success": False, "reason": message, "input_error": True}
+    except Exception as e:  # one failing image must not end a batch of thousands
+        log.exception("%s: localization failed", path)
+        return path, {"success": False, "reason": f"{path}: {type(e).__name__}: {e}"}
     overlay_dir = _worker_state["overlay_dir"]
     if overlay_dir:
         picture = draw_overlay(image, camera.undistorted(), lines2d, line_map.segments, result)
