@@ -41,6 +41,7 @@ class RenderConfig:
     sun_azimuth_deg: float = 35.0  # from +x towards +y
     sun_elevation_deg: float = 40.0
     ambient: float = 0.35  # sky light on every face; a fill term below makes shaded facades differ
+    gamma: float = 2.2  # the camera's tone curve on the light falling on a face (1 = linear)
     supersample: int = 2  # rasterise at this factor, then average down: anti-aliased edges
     blur_sigma_px: float = 0.6  # optics
     noise_std: float = 2.0  # sensor noise, grey levels
@@ -189,7 +190,9 @@ def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator,
     fill = np.array([math.cos(az + 1.9), math.sin(az + 1.9), 0.6])  # sky is brighter away from the sun
     n = building.normals
     shading = cfg.ambient * (1.0 + 0.35 * (n @ fill)) + (1.0 - cfg.ambient) * np.maximum(n @ sun, 0.0)
-    colour = albedo * shading[:, None]
+    # albedos are display (sRGB-like) values while light adds up linearly: a camera's tone curve (gamma
+    # 2.2) encodes the irradiance, which lifts shade as in a real photo (linear shade is near black)
+    colour = albedo * shading[:, None] ** (1.0 / cfg.gamma)
     # glass mirrors the sky, more at grazing angles (Schlick's Fresnel), one view angle per pane
     glass = building.face_kind == "window"
     view = eye - building.faces[glass].mean(axis=1)
@@ -246,3 +249,47 @@ def _distort(image: np.ndarray, camera: Camera) -> np.ndarray:
     src = camera.undistort_points(np.c_[u.ravel(), v.ravel()].astype(np.float64))
     maps = src.reshape(camera.height, camera.width, 2).astype(np.float32)
     return cv2.remap(image, maps[:, :, 0], maps[:, :, 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+
+def scaled_camera(camera: Camera, scale: float) -> Camera:
+    """Returns the pinhole camera of the same view at ``scale`` x the resolution (pixel centres kept)."""
+    w, h = max(round(camera.width * scale), 1), max(round(camera.height * scale), 1)
+    sx, sy = w / camera.width, h / camera.height
+    return Camera(camera.fx * sx, camera.fy * sy, (camera.cx + 0.5) * sx - 0.5, (camera.cy + 0.5) * sy - 0.5,
+                  w, h)  # fmt: skip
+
+
+def visible_edge_lengths(
+    building: Building,
+    cam_from_world: np.ndarray,
+    camera: Camera,
+    face_id: np.ndarray,
+    inv_depth: np.ndarray,
+    samples: int = 32,
+    tolerance: float = 0.03,
+) -> np.ndarray:
+    """Returns (E,) float64 the visible image length (px of ``camera``) of every building edge.
+
+    A z-buffer test instead of ray casting (``building.occluded``): each edge is sampled, and a sample is
+    visible when it projects into the image, in front of the camera, and no face in the (H', W') buffers
+    ``face_id`` / ``inv_depth`` (from ``rasterize`` at any resolution of the same view) is more than
+    ``tolerance`` nearer at its pixel or next to it (an edge lies on the border of its own faces).
+    """
+    t = np.linspace(0.0, 1.0, samples)
+    ends = building.edges.reshape(-1, 2, 3)
+    pts = ends[:, :1] + t[None, :, None] * (ends[:, 1:] - ends[:, :1])  # (E, S, 3)
+    cam = pts @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    z = cam[..., 2]
+    front = z > 0.1
+    zs = np.where(front, z, 1.0)
+    u, v = camera.fx * cam[..., 0] / zs + camera.cx, camera.fy * cam[..., 1] / zs + camera.cy
+    h, w = inv_depth.shape
+    su, sv = (u + 0.5) * w / camera.width - 0.5, (v + 0.5) * h / camera.height - 0.5
+    inside = front & (su > -0.5) & (su < w - 0.5) & (sv > -0.5) & (sv < h - 0.5)
+    # the farthest surface around each pixel: a sample on a silhouette sees past the occluder's border
+    farthest = cv2.erode(np.where(face_id >= 0, inv_depth, 0.0).astype(np.float32), np.ones((3, 3), np.uint8))
+    col = np.clip(np.rint(su), 0, w - 1).astype(np.int64)
+    row = np.clip(np.rint(sv), 0, h - 1).astype(np.int64)
+    visible = inside & (farthest[row, col] <= (1.0 + tolerance) / zs)
+    step = np.hypot(np.diff(u, axis=1), np.diff(v, axis=1))
+    return (step * (visible[:, 1:] & visible[:, :-1])).sum(axis=1)
