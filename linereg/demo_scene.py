@@ -11,9 +11,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .building import Building, camera_poses, make_building, street_camera
+from .building import Building, _aim, _is_free, _street_view, make_building, street_camera
 from .camera import Camera
-from .render import RenderConfig, render_image
+from .errors import LineregError
+from .render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
 from .scanner import ScanConfig, scan
 
 log = logging.getLogger(__name__)
@@ -56,7 +57,7 @@ def make_demo_scene(
     positions = scanner_positions(building)
     cloud = scan(building, positions, rng_scan, scan_config)
     camera = street_camera()
-    poses = np.array(camera_poses(building, rng_poses, num_images, camera)).reshape(-1, 4, 4)
+    poses = np.array(demo_poses(building, rng_poses, num_images, camera)).reshape(-1, 4, 4)
     images = np.array(
         [render_image(building, pose, camera, rng_render, render_config) for pose in poses], dtype=np.uint8
     ).reshape(-1, camera.height, camera.width, 3)
@@ -92,3 +93,48 @@ def scanner_positions(building: Building, clearance_m: float = 8.0) -> np.ndarra
     inside = np.all(above & below, axis=2)
     free = candidates[~np.any(inside, axis=1)]
     return np.c_[free, np.full(len(free), SCANNER_HEIGHT_M)]
+
+
+def demo_poses(
+    building: Building,
+    rng: np.random.Generator,
+    n: int,
+    camera: Camera,
+    min_visible_edges: int = 60,
+    max_tries: int = 100,
+) -> list[np.ndarray]:
+    """Returns n (4, 4) cam_from_world street views (``building._street_view``) a photographer would take.
+
+    Each must show at least ``min_visible_edges`` edges of 20 px or more and some structure that fixes
+    where along the building it stands (``_distinctive``), not just a patch of wall with a window grid,
+    which is the same on every facade. Visibility comes from a half-resolution z-buffer (~0.1 s a view).
+    """
+    small = scaled_camera(camera, 0.5)
+    poses: list[np.ndarray] = []
+    for _ in range(max_tries * max(n, 1)):
+        if len(poses) == n:
+            break
+        centre, target = _street_view(rng, building)
+        if not _is_free(building, centre):
+            continue
+        cam_from_world = _aim(rng, centre, target)
+        face_id, inv_depth = rasterize(building, cam_from_world, small)
+        lengths = visible_edge_lengths(building, cam_from_world, camera, face_id, inv_depth)
+        if (lengths >= 20.0).sum() >= min_visible_edges and _distinctive(building, face_id, lengths, camera):
+            poses.append(cam_from_world)
+    if len(poses) < n:
+        raise LineregError(f"demo_poses: found {len(poses)} of {n} views in {max_tries * n} tries")
+    return poses
+
+
+def _distinctive(building: Building, face_id: np.ndarray, lengths: np.ndarray, camera: Camera) -> bool:
+    """Returns whether a view shows two facade orientations (each on >= 8 % of the image: a corner) or a
+    block's vertical corner or roof line over at least a third of the image (where the building ends)."""
+    seen = face_id[face_id >= 0]
+    normals = building.normals[seen]
+    facade = np.abs(normals[:, 2]) < 0.5
+    # the 4 horizontal Manhattan orientations: +x, +y, -x, -y
+    orientation = np.round(np.arctan2(normals[facade, 1], normals[facade, 0]) / (0.5 * np.pi)).astype(int) % 4
+    share = np.bincount(orientation, minlength=4) / face_id.size
+    ends = np.isin(building.edge_kind, ("corner", "roof")) & (lengths >= camera.height / 3.0)
+    return bool((share >= 0.08).sum() >= 2 or ends.any())
