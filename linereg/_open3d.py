@@ -13,7 +13,7 @@ def open3d() -> ModuleType:
     try:
         import libusb_package
 
-        ctypes.CDLL(libusb_package.get_library_path(), mode=ctypes.RTLD_GLOBAL)
+        ctypes.CDLL(str(libusb_package.get_library_path()), mode=ctypes.RTLD_GLOBAL)
     except (ImportError, OSError, TypeError):
         pass  # a system libusb may still be there; the import below says so if not
     import open3d as o3d

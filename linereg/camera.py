@@ -92,6 +92,13 @@ class Camera:
             raise InvalidInputError(f"{source}: {e}") from None
 
     def to_dict(self) -> dict:
-        d = {"fx": self.fx, "fy": self.fy, "cx": self.cx, "cy": self.cy}
-        d |= {"width": self.width, "height": self.height, "dist": list(self.dist)}
-        return d
+        """Returns ``{fx, fy, cx, cy, width, height, dist}`` (the form ``from_dict`` and camera files use)."""
+        return {
+            "fx": self.fx,
+            "fy": self.fy,
+            "cx": self.cx,
+            "cy": self.cy,
+            "width": self.width,
+            "height": self.height,
+            "dist": list(self.dist),
+        }

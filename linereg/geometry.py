@@ -65,7 +65,7 @@ def pose_errors(cam_from_world: np.ndarray, gt_cam_from_world: np.ndarray) -> tu
     rot = rotation_error_deg(cam_from_world[:3, :3], gt_cam_from_world[:3, :3])
     pos = float(np.linalg.norm(camera_center(cam_from_world) - camera_center(gt_cam_from_world)))
     t_gt = gt_cam_from_world[:3, 3]
-    rel = float(np.linalg.norm(cam_from_world[:3, 3] - t_gt) / max(np.linalg.norm(t_gt), 1e-12))
+    rel = float(np.linalg.norm(cam_from_world[:3, 3] - t_gt) / max(float(np.linalg.norm(t_gt)), 1e-12))
     return rot, pos, rel
 
 

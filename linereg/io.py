@@ -302,6 +302,16 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
+def read_json(path: str | os.PathLike) -> Any:
+    """Returns the parsed JSON of a file; missing or malformed -> FileFormatError naming the file."""
+    path = Path(path)
+    _check_readable(path)
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except (UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise FileFormatError(f"{path}: not valid JSON ({e})") from None
+
+
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
     """Writes ``obj`` as indented JSON (numpy arrays and scalars become lists and numbers), atomically."""
     text = json.dumps(obj, indent=2, default=_json_default, allow_nan=True)

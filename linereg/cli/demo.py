@@ -87,13 +87,15 @@ def _localizer(map_path: Path, line_map, in_process: bool) -> Iterator[Callable]
 def print_table(rows: list) -> None:
     print(f"{'image':>5} {'ok':>3} {'inliers':>7} {'ambig':>5} {'R_e deg':>8} {'pos m':>7} {'ms':>6}  reason")
     for k, res, (rot, pos, _), ms in rows:
-        ok = "yes" if res.success else "no"
-        line = f"{k:>5} {ok:>3} {res.num_inliers:>7} {res.ambiguity:>5.2f} {rot:>8.3f} {pos:>7.3f} {ms:>6.0f}"
+        flag = "yes" if res.success else "no"
+        line = (
+            f"{k:>5} {flag:>3} {res.num_inliers:>7} {res.ambiguity:>5.2f} {rot:>8.3f} {pos:>7.3f} {ms:>6.0f}"
+        )
         print(line + f"  {res.reason}")
     ok = [r for r in rows if r[1].success]
     if ok:
-        rot = np.median([r[2][0] for r in ok])
-        pos = np.median([r[2][1] for r in ok])
+        rot = float(np.median([r[2][0] for r in ok]))
+        pos = float(np.median([r[2][1] for r in ok]))
         print(f"localized {len(ok)}/{len(rows)}; median R_e {rot:.3f} deg, median position error {pos:.3f} m")
     else:
         print(f"localized 0/{len(rows)}")
