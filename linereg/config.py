@@ -80,6 +80,7 @@ class RotationConfig:
     min_pair_angle_deg: float = 10.0  # two directions closer than this to (anti)parallel cannot fix a rotation
     top_k: int = 3  # pairings are tried among the strongest top_k VDs and top_k 3D clusters
     max_candidates: int = 24
+    refit: bool = True  # re-fit each candidate's R to the member segments of its paired VDs (not just the VDs)
 
 
 @dataclass(frozen=True)
@@ -113,6 +114,17 @@ class TranslationConfig:
     polish_rounds: int = 2  # "search": robust least squares on the coplanarity equations + re-match
     distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
     seed: int = 0
+    # many rotation candidates (Manhattan scenes: 24): each is first screened by a "search" with this seed
+    # budget (a smaller one misses the true t on large maps) counting only the few fullest cells, unpolished;
+    # only the best ``finalists`` get the full search
+    screen_max_hypotheses: int = 20_000
+    screen_num_verify: int = 4
+    finalists: int = 4
+    # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``) are
+    # all refined; the one whose refined inliers cover the most 2D length wins: a symmetric building seen
+    # from its far side explains as many segments before refinement, not as well after
+    contenders: int = 4
+    contest_fraction: float = 0.8
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -10,13 +11,13 @@ from .camera import Camera
 from .config import RegisterConfig
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .geometry import make_cam_from_world, rotation_error_deg
+from .geometry import make_cam_from_world, rotation_error_deg, segment_lengths
 from .parallel import parallel_clusters
-from .refine import refine_pose
+from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
-from .rotation import rotation_candidates
+from .rotation import RotationCandidate, refine_candidates, rotation_candidates
 from .timing import StageTimer
-from .translation import estimate_translation
+from .translation import TranslationHypothesis, estimate_translation, scene_size, screen_translation
 from .vanishing import vanishing_directions
 
 log = logging.getLogger(__name__)
@@ -65,39 +66,33 @@ def register_undistorted(
     # III-B, eq. (2): rotation candidates from VD <-> parallel-cluster pairings and signs (Algorithm 1)
     with timer("rotation"):
         candidates = rotation_candidates(vds, clusters3d, config.rotation)
+        if config.rotation.refit:
+            candidates = refine_candidates(candidates, vds, clusters3d, lines2d, camera)
     if not candidates:
         reason = f"no rotation candidate ({len(vds)} vanishing directions, {len(clusters3d)} 3D clusters)"
         return Registration(success=False, reason=reason, timings=timer.finish())
-    # III-C, eq. (coplanar): translation and correspondences per candidate; most inliers wins (Algorithm 2)
+    # III-C, eq. (coplanar): translation and correspondences per candidate (Algorithm 2); with many candidates
+    # (Manhattan scenes), a cheap screening first and the full search for the best few
     with timer("translation"):
-        hypotheses = [
-            estimate_translation(lines2d, lines3d, camera, c.R, clusters3d, config.translation, config.match)
-            for c in candidates
-        ]
-    order = np.argsort([-h.num_inliers for h in hypotheses], kind="stable")
-    best, winner = hypotheses[order[0]], candidates[order[0]]
-    runner_up = max(
-        [best.runner_up_inliers]
-        + [hypotheses[i].num_inliers for i in order[1:] if _differs(candidates[i].R, winner.R)]
-    )
-    if best.num_inliers < config.min_inliers:
-        reason = f"best hypothesis has {best.num_inliers} inliers, fewer than {config.min_inliers}"
-        return Registration(success=False, reason=reason, timings=timer.finish())
-    # III-D, eq. (costs): GTSAM refinement of endpoint-to-line distances, reject outliers, re-associate
-    with timer("refine"):
-        refined = refine_pose(
-            lines2d,
-            lines3d,
-            camera,
-            make_cam_from_world(winner.R, best.t),
-            best.matches,
-            config.refine,
-            config.match,
+        poses = _translations(lines2d, lines3d, camera, candidates, clusters3d, config)
+    if poses[0].hypothesis.num_inliers < config.min_inliers:
+        reason = (
+            f"best hypothesis has {poses[0].hypothesis.num_inliers} inliers, fewer than {config.min_inliers}"
         )
+        return Registration(success=False, reason=reason, timings=timer.finish())
+    # III-D, eq. (costs): GTSAM refinement of endpoint-to-line distances, reject outliers, re-associate;
+    # the best few distinct poses are all refined and the best refined fit wins
+    with timer("refine"):
+        winner, refined = _contest(lines2d, lines3d, camera, poses, config)
     num_inliers = len(refined.matches)
     if num_inliers < config.min_inliers:
         reason = f"refinement kept {num_inliers} inliers, fewer than {config.min_inliers}"
         return Registration(success=False, reason=reason, timings=timer.finish())
+    far = config.translation.distinct_fraction * scene_size(lines3d)
+    runner_up = max(
+        [winner.hypothesis.runner_up_inliers]
+        + [p.hypothesis.num_inliers for p in poses if _differs(p, winner, far)]
+    )
     return Registration(
         success=True,
         cam_from_world=refined.cam_from_world,
@@ -106,10 +101,96 @@ def register_undistorted(
         covariance=refined.covariance,
         runner_up_inliers=int(runner_up),
         rms_px=refined.rms_px,
+        inliers_before_refinement=winner.hypothesis.num_inliers,
         timings=timer.finish(),
     )
 
 
-def _differs(R_a: np.ndarray, R_b: np.ndarray, angle_deg: float = 2.0) -> bool:
-    """Returns True if two rotation candidates are distinct hypotheses (not the same up to noise)."""
-    return rotation_error_deg(R_a, R_b) > angle_deg
+@dataclass(frozen=True)
+class _Pose:
+    """A rotation candidate's R with its translation hypothesis."""
+
+    R: np.ndarray
+    hypothesis: TranslationHypothesis
+
+    @property
+    def centre(self) -> np.ndarray:
+        return -self.R.T @ self.hypothesis.t
+
+
+def _translations(
+    lines2d: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    candidates: list[RotationCandidate],
+    clusters3d: DirectionClusters,
+    config: RegisterConfig,
+) -> list[_Pose]:
+    """Returns a translation hypothesis per rotation candidate, most inliers first.
+
+    With more candidates than ``translation.finalists`` ("search" only), all are screened by a cheap
+    search (``screen_translation``) and only the finalists get the full one; the others keep their
+    screening count (no pose: it only serves as a runner-up count).
+    """
+    tc = config.translation
+
+    def estimate(R: np.ndarray) -> _Pose:
+        return _Pose(R, estimate_translation(lines2d, lines3d, camera, R, clusters3d, tc, config.match))
+
+    Rs = [c.R for c in candidates]
+    if tc.method == "search" and len(Rs) > tc.finalists:
+        args = (lines2d, lines3d, camera)
+        screened = [screen_translation(*args, R, clusters3d, tc, config.match) for R in Rs]
+        order = np.argsort(np.negative(screened), kind="stable")
+        poses = [estimate(Rs[k]) for k in order[: tc.finalists]]
+        # the others keep their screening count: enough for the runner-up, never refined
+        poses += [_Pose(Rs[k], _screened_only(screened[k])) for k in order[tc.finalists :]]
+    else:
+        poses = [estimate(R) for R in Rs]
+    return sorted(poses, key=lambda p: -p.hypothesis.num_inliers)
+
+
+def _screened_only(count: int) -> TranslationHypothesis:
+    """Returns a placeholder hypothesis carrying only a screening inlier count."""
+    return TranslationHypothesis(np.full(3, np.nan), np.zeros((0, 2), dtype=np.int64), count, 0)
+
+
+def _contest(
+    lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, poses: list[_Pose], config: RegisterConfig
+) -> tuple[_Pose, Refinement]:
+    """Returns (winner, its Refinement) among the best distinct poses, all refined ("search" only).
+
+    The winner's refined inliers cover the most 2D length (pixels): a mirror pose (the far side of a
+    symmetric block) can count as many unrefined inliers, but it explains the image less well once the
+    tighter refinement threshold drops its accidental matches. "ransac" keeps the paper's rule: most
+    inliers wins.
+    """
+    tc = config.translation
+    far = tc.distinct_fraction * scene_size(lines3d)
+    best = poses[0].hypothesis.num_inliers
+    contenders = [poses[0]]
+    if tc.method == "search":
+        for p in poses[1:]:
+            full = len(p.hypothesis.matches) > 0  # not a screening count only
+            if (
+                full
+                and len(contenders) < tc.contenders
+                and p.hypothesis.num_inliers >= tc.contest_fraction * best
+            ):
+                if all(_differs(p, q, far) for q in contenders):
+                    contenders.append(p)
+    lengths = segment_lengths(lines2d)
+    results = []
+    for p in contenders:
+        pose = make_cam_from_world(p.R, p.hypothesis.t)
+        refined = refine_pose(
+            lines2d, lines3d, camera, pose, p.hypothesis.matches, config.refine, config.match
+        )
+        results.append((float(lengths[refined.matches[:, 0]].sum()), refined, p))
+    k = int(np.argmax([r[0] for r in results]))
+    return results[k][2], results[k][1]
+
+
+def _differs(a: _Pose, b: _Pose, far_m: float, angle_deg: float = 2.0) -> bool:
+    """Returns True if two poses are distinct hypotheses: rotations or camera centres clearly apart."""
+    return rotation_error_deg(a.R, b.R) > angle_deg or float(np.linalg.norm(a.centre - b.centre)) > far_m

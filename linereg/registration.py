@@ -17,8 +17,12 @@ class Registration:
     matches: (K, 2) int64 ``(i2d, j3d)`` inlier correspondences.
     covariance: (6, 6) float64 from GTSAM marginals, (rotation rad, translation m) order, in the
         camera (body) frame of the ``world_T_cam`` pose GTSAM optimises; NaN when unavailable.
-    runner_up_inliers: inlier count of the best hypothesis that differs from the winner (another rotation
-        candidate or a translation away from it); close to ``num_inliers`` means an ambiguous scene.
+    runner_up_inliers: inlier count, BEFORE refinement, of the best hypothesis that differs from the winner
+        (another rotation candidate or a translation clearly away from it).
+    inliers_before_refinement: the winner's inlier count at that same stage (the shared inlier test at its
+        unrefined pose), so that ``ambiguity`` compares like with like: refinement re-associates with a
+        tighter threshold and usually keeps fewer matches than the unrefined count. 0 = unknown (then
+        ``num_inliers`` is the reference).
     timings: stage name -> seconds.
     """
 
@@ -30,12 +34,18 @@ class Registration:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     runner_up_inliers: int = 0
     rms_px: float = float("nan")
+    inliers_before_refinement: int = 0
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def ambiguity(self) -> float:
-        """Returns runner-up / winner inlier ratio in [0, 1]: near 1 = another pose explains the image as well."""
-        return self.runner_up_inliers / self.num_inliers if self.num_inliers else 1.0
+        """Returns runner-up / winner inlier ratio in [0, 1]: near 1 = another pose explains the image as well.
+
+        Both counts are taken before refinement (``inliers_before_refinement``, else ``num_inliers``); the
+        winner is chosen by its refined fit, so a runner-up may count more unrefined inliers: clipped to 1.
+        """
+        reference = self.inliers_before_refinement or self.num_inliers
+        return min(1.0, self.runner_up_inliers / reference) if reference else 1.0
 
     def to_dict(self) -> dict:
         """Returns a JSON-friendly dict (lists instead of arrays)."""
@@ -45,6 +55,7 @@ class Registration:
             "cam_from_world": self.cam_from_world.tolist(),
             "num_inliers": self.num_inliers,
             "runner_up_inliers": self.runner_up_inliers,
+            "inliers_before_refinement": self.inliers_before_refinement,
             "ambiguity": self.ambiguity,
             "rms_px": None if not np.isfinite(self.rms_px) else self.rms_px,
             "covariance": np.where(np.isfinite(self.covariance), self.covariance, None).tolist(),

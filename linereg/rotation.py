@@ -12,13 +12,14 @@ from __future__ import annotations
 
 import itertools
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from .camera import Camera
 from .config import RegisterConfig, RotationConfig
 from .directions import DirectionClusters
+from .geometry import interpretation_normals, rotation_error_deg, segment_lengths
 from .parallel import parallel_clusters
 from .vanishing import vanishing_directions
 
@@ -84,6 +85,72 @@ def rotation_candidates_from_segments(
     vds = vanishing_directions(lines2d, camera, config.vanishing)
     clusters = parallel_clusters(lines3d, config.parallel)
     return rotation_candidates(vds, clusters, config.rotation), vds, clusters
+
+
+def refine_candidates(
+    candidates: list[RotationCandidate],
+    vds: DirectionClusters,
+    clusters: DirectionClusters,
+    lines2d: np.ndarray,
+    camera: Camera,
+    iterations: int = 3,
+) -> list[RotationCandidate]:
+    """Returns the candidates with R re-fitted to the 2D segments of their paired VDs (eq. 1 per segment).
+
+    A VD estimated from few or short segments is off by degrees, and Procrustes on the VDs (eq. 2) passes
+    that on to R. Fitting R to every member segment at once (``n_i . R s D_a = 0`` for segment i of VD k
+    paired with cluster a, weighted by squared length like the VD fit) lets the well-observed directions
+    fix what a weak one cannot. Gauss-Newton on a small rotation; a candidate that would move more than
+    the pairing tolerance is kept as it was.
+    """
+    if len(candidates) == 0 or len(vds.labels) != len(lines2d):
+        return candidates
+    normals = interpretation_normals(lines2d, camera)
+    weights = segment_lengths(lines2d) ** 2
+    out = []
+    for c in candidates:
+        R = _refit(c.R, c.pairs, vds.labels, normals, weights, clusters.directions, iterations)
+        out.append(replace(c, R=R) if rotation_error_deg(R, c.R) < 5.0 else c)
+    return out
+
+
+def _refit(
+    R: np.ndarray,
+    pairs: tuple[tuple[int, int, int], ...],
+    labels: np.ndarray,
+    normals: np.ndarray,
+    weights: np.ndarray,
+    D: np.ndarray,
+    iterations: int,
+) -> np.ndarray:
+    """Returns (3, 3) R minimising sum w_i (n_i . R d_i)^2 over the member segments of the paired VDs."""
+    rows = [(np.flatnonzero(labels == k), s * D[a]) for k, a, s in pairs]
+    index = np.concatenate([r for r, _ in rows])
+    if len(index) < 4:
+        return R
+    d = np.concatenate([np.broadcast_to(v, (len(r), 3)) for r, v in rows])
+    n, w = normals[index], np.sqrt(weights[index])
+    for _ in range(iterations):
+        Rd = d @ R.T
+        r = np.einsum("pk,pk->p", n, Rd)  # n . (I + [w]x) R d = r + w . (R d x n)
+        J = np.cross(Rd, n)
+        # Cauchy reweighting at 2 robust sigmas: a few mislabelled segments must not pull
+        scaled = r * w
+        sigma = 2.0 * 1.4826 * float(np.median(np.abs(scaled))) + 1e-12
+        c = w / np.sqrt(1.0 + (scaled / sigma) ** 2)
+        omega = np.linalg.lstsq(J * c[:, None], -r * c, rcond=None)[0]
+        R = _exp(omega) @ R
+    return R
+
+
+def _exp(omega: np.ndarray) -> np.ndarray:
+    """Returns the (3, 3) rotation of rotation vector omega (Rodrigues)."""
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = omega / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def _consistent_pairings(V: np.ndarray, D: np.ndarray, config: RotationConfig) -> np.ndarray:

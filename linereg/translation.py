@@ -12,7 +12,7 @@ inlier count; "search" first polishes them by robust least squares on the coplan
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -68,6 +68,30 @@ def estimate_translation(
 
         candidates = search_candidates(lines2d, lines3d, camera, R, pairs, config, match)
     return finish(lines2d, lines3d, camera, R, pairs, candidates, config, match)
+
+
+def screen_translation(
+    lines2d: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    R: np.ndarray,
+    clusters3d: DirectionClusters,
+    config: TranslationConfig,
+    match: MatchConfig,
+) -> int:
+    """Returns a cheap inlier count for rotation R: "search" with ``config.screen_num_verify`` voted cells
+    counted on the compatible pairs (``pair_inliers``, a lower bound of ``match_segments``), unpolished.
+
+    Ranks rotation candidates so that only the best get ``estimate_translation``; same arguments.
+    """
+    from .translation_search import search_candidates
+
+    pairs = compatible_pairs(lines2d, lines3d, camera, R, clusters3d, config.coplanar_px)
+    if len(pairs.i) < 3:
+        return 0
+    screen = replace(config, max_hypotheses=config.screen_max_hypotheses, num_verify=config.screen_num_verify)
+    _, scores = search_candidates(lines2d, lines3d, camera, R, pairs, screen, match)
+    return int(scores.max()) if len(scores) else 0
 
 
 def _empty() -> TranslationHypothesis:

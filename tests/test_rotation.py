@@ -201,3 +201,23 @@ def test_paper_scenes():
         errors.append(best_error(candidates, scene.cam_from_world[:3, :3]) if candidates else 180.0)
     # 150 scenes: median 1.1 deg, 90 % within 3 deg, 97 % within the paper's 0.1 rad success bound
     assert np.median(errors) < 2.0 and sum(e < 5.7 for e in errors) >= 8, errors
+
+
+def test_refine_candidates_pulls_an_off_rotation_onto_the_segments():
+    from dataclasses import replace
+
+    from linereg.rotation import refine_candidates
+    from linereg.synthetic import building_scene
+
+    scene = building_scene(np.random.default_rng(3))
+    candidates, vds, cl = rotation_candidates_from_segments(scene.lines2d, scene.lines3d, scene.camera)
+    truth = scene.cam_from_world[:3, :3]
+    best = min(candidates, key=lambda c: rotation_error_deg(c.R, truth))
+    off = replace(best, R=rotation_about([0.3, 1.0, -0.4], 2.0) @ best.R)  # a VD error of 2 degrees
+    (refit,) = refine_candidates([off], vds, cl, scene.lines2d, scene.camera)
+    assert rotation_error_deg(refit.R, truth) < 0.5 * rotation_error_deg(off.R, truth)
+    assert abs(np.linalg.det(refit.R) - 1.0) < 1e-9 and np.allclose(refit.R @ refit.R.T, np.eye(3))
+    assert refit.pairs == off.pairs
+    # nothing to fit on (labels of another size): candidates come back unchanged
+    bare = DirectionClusters(vds.directions, np.zeros(0, dtype=np.int64), vds.support)
+    assert refine_candidates([off], bare, cl, scene.lines2d, scene.camera)[0] is off
