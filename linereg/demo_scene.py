@@ -22,7 +22,7 @@ log = logging.getLogger(__name__)
 SCANNER_HEIGHT_M = 1.7
 # ~1 M points in a few seconds: 0.22 degree rays from 4 positions, subsampled; rays steeper than 30 degrees
 # down would only add the ground right round each tripod
-DEMO_SCAN = ScanConfig(angular_step_deg=0.22, min_elevation_deg=-30.0, target_points=1_000_000)
+DEMO_SCAN = ScanConfig(angular_step_deg=0.15, min_elevation_deg=-30.0, target_points=1_000_000)
 
 
 @dataclass(frozen=True)
