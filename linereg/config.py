@@ -169,6 +169,10 @@ class LineDetectConfig:
     merge_gap_frac: float = 0.02  # largest gap bridged, fraction of the image diagonal (paper: 60 px)
     max_merge_rounds: int = 10  # merging repeats until stable or this many rounds
     min_length_frac: float = 0.025  # shorter segments left after merging are dropped (paper: 80 px)
+    # LSD segments this close (px) to the picture's border, or to a flat frame round it, and this parallel
+    # to it are the picture's end, not the scene's; 0 = keep them
+    border_px: float = 3.0
+    border_angle_deg: float = 5.0
 
 
 @dataclass(frozen=True)
