@@ -37,6 +37,7 @@ def detect(image: np.ndarray, camera: Camera, config: LineDetectConfig | None = 
             f"image is {gray.shape[1]}x{gray.shape[0]} px but the camera is {camera.width}x{camera.height}"
         )
     segments = lsd_segments(gray, config)
+    segments = segments[~along_border(segments, gray.shape, frame_margins(gray), config)]
     if camera.has_distortion and len(segments):
         segments = camera.undistort_points(segments.reshape(-1, 2)).reshape(-1, 4)
     diagonal = math.hypot(camera.width, camera.height)
@@ -110,6 +111,44 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
         factor = np.array([gray.shape[1] / small.shape[1], gray.shape[0] / small.shape[0]] * 2)
         segments = (segments + 0.5) * factor - 0.5
     return segments
+
+
+def frame_margins(gray: np.ndarray, max_frac: float = 0.02, flat_std: float = 0.5) -> np.ndarray:
+    """Returns (4,) int64 widths (left, top, right, bottom) of a flat frame round a (H, W) uint8 image.
+
+    Some cameras and converters pad or mask the picture (a Kinect's registered RGB has a ~5 px frame):
+    border columns / rows of one constant grey (std below flat_std: no sensor is that quiet) are frame,
+    up to max_frac of the size.
+    """
+    h, w = gray.shape
+    out = []
+    for strips, limit in ((gray.T, w), (gray, h), (gray.T[::-1], w), (gray[::-1], h)):
+        n = max(int(max_frac * limit), 0)
+        flat = strips[:n].std(axis=1) < flat_std if n else np.zeros(0, dtype=bool)
+        out.append(int(np.argmin(np.r_[flat, False])))  # leading run of flat strips
+    return np.array(out, dtype=np.int64)
+
+
+def along_border(
+    segments: np.ndarray, shape: tuple[int, ...], margins: np.ndarray, config: LineDetectConfig
+) -> np.ndarray:
+    """Returns (N,) bool: segments that run along the picture's border (within border_px of it or of the
+    frame ``margins`` (4,) and within border_angle_deg of parallel to it).
+
+    Their "edge" is the end of the picture (or of its frame), not a line of the scene, and a long one
+    makes a false vanishing direction.
+    """
+    if config.border_px <= 0 or len(segments) == 0:
+        return np.zeros(len(segments), dtype=bool)
+    h, w = shape[:2]
+    x, y = segments[:, [0, 2]], segments[:, [1, 3]]
+    dx, dy = np.abs(segments[:, 2] - segments[:, 0]), np.abs(segments[:, 3] - segments[:, 1])
+    tan = math.tan(math.radians(config.border_angle_deg))
+    vertical, horizontal = dx <= tan * dy, dy <= tan * dx
+    left, top, right, bottom = margins.astype(np.float64) - 0.5 + config.border_px  # pixel centres at 0
+    near_x = (x <= left).all(axis=1) | (x >= w - 1 - right).all(axis=1)
+    near_y = (y <= top).all(axis=1) | (y >= h - 1 - bottom).all(axis=1)
+    return (vertical & near_x) | (horizontal & near_y)
 
 
 def merge_collinear(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig) -> np.ndarray:

@@ -11,7 +11,7 @@ import pytest
 import linereg
 from linereg.config import LineDetectConfig
 from linereg.errors import InvalidInputError
-from linereg.lines2d import detect, lsd_segments, merge_collinear
+from linereg.lines2d import along_border, detect, frame_margins, lsd_segments, merge_collinear
 
 DATA = pathlib.Path("/work/shared/data")
 # a tilted quadrilateral: four long edges at various angles
@@ -157,3 +157,19 @@ def test_real_photos(folder):
     diagonal = math.hypot(camera.width, camera.height)
     assert len(found) >= 50 and np.isfinite(found).all()
     assert (np.linalg.norm(found[:, 2:] - found[:, :2], axis=1) >= 0.025 * diagonal).all()
+
+
+def test_picture_border_and_flat_frame_give_no_segments(camera, rng):
+    img = polygon_image(QUAD, rng)
+    framed = img.copy()
+    framed[:, :6], framed[:, -7:], framed[:5], framed[-5:] = 255, 255, 255, 255  # a Kinect-like frame
+    np.testing.assert_array_equal(frame_margins(framed), [6, 5, 7, 5])
+    np.testing.assert_array_equal(frame_margins(img), [0, 0, 0, 0])
+    for picture in (framed, img):
+        found = detect(picture, camera)
+        assert_edges_found(found, quad_edges(QUAD))
+        assert len(found) == 4  # the frame's inner edges and the picture's end are no lines
+    # a segment along the border but across it (or far from it) is kept
+    cfg = LineDetectConfig()
+    segments = np.array([[1.0, 10.0, 1.5, 300.0], [1.0, 10.0, 60.0, 300.0], [100.0, 477.5, 500.0, 478.0]])
+    np.testing.assert_array_equal(along_border(segments, (480, 640), np.zeros(4), cfg), [True, False, True])
