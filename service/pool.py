@@ -30,17 +30,17 @@ log = logging.getLogger(__name__)
 _CTX = mp.get_context("spawn")  # never fork: the zenoh session runs native threads
 
 
-# the workers are the parallelism: a BLAS/OpenMP pool per worker would oversubscribe the cores
+# the workers share the cores: each gets cores // workers BLAS/OpenMP threads (no oversubscription)
 _THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
 _ENV_LOCK = threading.Lock()
 
 
 @contextlib.contextmanager
-def _one_thread_env() -> Iterator[None]:
-    """Sets the thread-pool variables a spawned child inherits to 1 (unless the operator set them)."""
+def _thread_env(threads: int) -> Iterator[None]:
+    """Sets the thread-pool variables a spawned child inherits to ``threads`` (unless the operator set them)."""
     with _ENV_LOCK:
         added = [k for k in _THREAD_VARS if k not in os.environ]
-        os.environ.update({k: "1" for k in added})
+        os.environ.update({k: str(threads) for k in added})
         try:
             yield
         finally:
@@ -84,10 +84,12 @@ class WorkerPool:
     """``workers`` processes, each with the engine ``loader(*loader_args)`` loaded once."""
 
     def __init__(self, loader: str, loader_args: tuple, workers: int = 2, queue_size: int = 8,
-                 limits: Limits | None = None, hard_grace_s: float = 30.0) -> None:  # fmt: skip
+                 limits: Limits | None = None, hard_grace_s: float = 30.0,
+                 threads_per_worker: int | None = None) -> None:  # fmt: skip
         self.loader, self.loader_args = loader, tuple(loader_args)
         self.num_workers, self.limits, self.hard_grace_s = workers, limits or Limits(), hard_grace_s
         self.jobs: queue.Queue = queue.Queue(maxsize=queue_size)
+        self.threads_per_worker = threads_per_worker or max(1, (os.cpu_count() or 1) // workers)
         self.ready_info: dict = {}
         self.restarts = 0
         self.in_flight = 0
@@ -163,7 +165,7 @@ class WorkerPool:
             target=worker_main, args=(child, self.loader, self.loader_args, self.limits),
             name=f"linereg-worker-{index}", daemon=True,
         )  # fmt: skip
-        with _one_thread_env():
+        with _thread_env(self.threads_per_worker):
             proc.start()
         child.close()  # so that the parent sees EOF when the child dies
         return proc, parent

@@ -43,6 +43,7 @@ class ServiceConfig:
     multicast: bool = False
     limits: Limits = field(default_factory=Limits)
     drain_timeout_s: float = 30.0
+    threads_per_worker: int | None = None  # BLAS/OpenMP threads per worker; default cores // workers
     hard_grace_s: float = 30.0
 
 
@@ -60,6 +61,7 @@ class Service:
             config.queue_size,
             config.limits,
             config.hard_grace_s,
+            config.threads_per_worker,
         )
         self.map_name = ""
         self.info: dict = {}

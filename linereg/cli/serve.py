@@ -15,6 +15,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--workers", type=int, default=2, help="worker processes, each with the map loaded")
     parser.add_argument(
+        "--threads-per-worker", type=int, help="BLAS/OpenMP threads per worker (default: cores // workers)"
+    )
+    parser.add_argument(
         "--queue", type=int, default=8, help="requests waiting beyond the workers before 'busy'"
     )
     parser.add_argument(
@@ -53,7 +56,8 @@ def config_from_args(args: argparse.Namespace):
     listen = tuple(args.listen) if args.listen else default_listen
     return ServiceConfig(
         loader=args.engine, loader_args=(args.map, args.name), map_name=args.name,
-        instance=args.instance, tile=args.tile, workers=args.workers, queue_size=args.queue, mode=mode, listen=listen,
+        instance=args.instance, tile=args.tile, workers=args.workers, queue_size=args.queue, mode=mode,
+        threads_per_worker=args.threads_per_worker, listen=listen,
         connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
     )  # fmt: skip
 
