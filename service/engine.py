@@ -59,22 +59,3 @@ def _engine(line_map, name: str, info: dict) -> Engine:
     engine = Engine(line_map, linereg.localize, linereg.localize_segments, name, version, info)
     engine.map_id = str(info.get("map_id", ""))
     return engine
-
-
-def load_register_engine(lines3d_path: str, map_name: str) -> Engine:
-    """Returns an Engine answering segment requests with ``linereg.register`` over raw (M, 6) 3D segments
-    from a ``.npy`` (no LineMap, no culling; benchmarks of the pipeline itself). Images are refused."""
-    import numpy as np
-
-    import linereg
-
-    lines3d = np.load(lines3d_path)
-
-    def localize_segments(lines2d, line_map, camera, config=None, prior=None):
-        return linereg.register(lines2d, line_map, camera, config)
-
-    def localize(image, line_map, camera, config=None, prior=None):
-        raise linereg.InvalidInputError("this engine localizes segments only")
-
-    info = {"name": map_name, "num_segments": len(lines3d)}
-    return Engine(lines3d, localize, localize_segments, map_name, "raw", info)
