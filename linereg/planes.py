@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
 
@@ -251,7 +252,7 @@ def segment_planes(
     counts, cen, nrm, _ = fit_planes(points[labels >= 0], labels[labels >= 0], num)
     pairs = _touching(grid, labels)
     logger.debug("%d regions, %d touching pairs", num, len(pairs))
-    return Planes(labels, nrm, cen, counts, pairs[:, :2], _region_spacing(grid, labels, num))
+    return Planes(labels, nrm, cen, counts, pairs[:, :2], _region_spacing(points, labels, num))
 
 
 def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
@@ -276,18 +277,25 @@ def _drop_off_plane(points: np.ndarray, labels: np.ndarray, distance_m: float) -
     return out
 
 
-def _region_spacing(voxels: Voxels, labels: np.ndarray, num: int) -> np.ndarray:
-    """Returns (R,) float64 typical point spacing (m) of each region: a plane crossing a voxel of size v
-    covers about v^2 of it, so v / sqrt(count) over the region's voxels (median: edge voxels are partial)."""
-    ok = labels >= 0
-    keys, counts = np.unique(voxels.of_point[ok] * num + labels[ok], return_counts=True)
-    region = keys % num
-    spacing = voxels.size_m / np.sqrt(counts)
-    order = np.lexsort((spacing, region))
-    region, spacing = region[order], spacing[order]
-    start = np.searchsorted(region, np.arange(num))
-    stop = np.searchsorted(region, np.arange(num), side="right")
-    return spacing[(start + stop - 1) // 2]  # the (lower) median of each region's run
+def _region_spacing(points: np.ndarray, labels: np.ndarray, num: int, neighbours: int = 8) -> np.ndarray:
+    """Returns (R,) float64 typical point spacing (m) of each region: k points within r of a point cover
+    pi r^2 of the plane, so r_k sqrt(pi / k) (median over up to 500 of the region's points).
+
+    Nearest neighbours, not points per voxel: a thin strip (a 25 cm ledge) or a region cut by voxel
+    borders fills only part of its voxels, which made it look several times sparser than it is.
+    """
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(num + 1))
+    out = np.zeros(num)
+    for r in range(num):
+        member = points[order[bounds[r] : bounds[r + 1]]]
+        k = min(neighbours, len(member) - 1)
+        if k < 1:
+            continue
+        sample = member[:: max(1, len(member) // 500)]
+        dist, _ = cKDTree(member).query(sample, k=k + 1)  # the first neighbour is the point itself
+        out[r] = float(np.median(dist[:, -1])) * np.sqrt(np.pi / k)
+    return out
 
 
 def _majority(of_point: np.ndarray, labels: np.ndarray, num_voxels: int) -> np.ndarray:
