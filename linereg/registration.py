@@ -58,7 +58,7 @@ class Registration:
             "inliers_before_refinement": self.inliers_before_refinement,
             "ambiguity": self.ambiguity,
             "rms_px": None if not np.isfinite(self.rms_px) else self.rms_px,
-            "covariance": np.where(np.isfinite(self.covariance), self.covariance, None).tolist(),
+            "covariance": [[float(x) if np.isfinite(x) else None for x in row] for row in self.covariance],
             "matches": self.matches.tolist(),
             "timings": dict(self.timings),
         }

@@ -12,7 +12,7 @@ from linereg.geometry import make_cam_from_world
 from linereg.matching import match_matrix, match_segments, project_segments
 from linereg.parallel import parallel_clusters
 from linereg.synthetic import paper_scene
-from linereg.translation import estimate_translation
+from linereg.translation import estimate_translation, screen_translation
 from linereg.translation_pairs import compatible_pairs, pair_inliers, pair_matches
 from linereg.translation_search import _corner_ends, pair_hypotheses
 
@@ -191,3 +191,18 @@ def test_corner_ends_counts_shared_endpoints():
     lines2d = np.array([[0.0, 0.0, 100.0, 0.0], [101.0, 1.0, 100.0, 80.0], [300.0, 300.0, 350.0, 300.0]])
     np.testing.assert_array_equal(_corner_ends(lines2d, 4.0), [1, 1, 0])
     assert _corner_ends(np.array([[0.0, 0.0, 2.0, 0.0]]), 4.0)[0] == 0  # its own ends are not a corner
+
+
+def test_screening_prefers_the_true_rotation_and_never_counts_more_than_the_full_search():
+    scene, clusters = _scene(4, outlier3d_fraction=0.3, outlier2d_fraction=0.3)
+    R = scene.cam_from_world[:3, :3]
+    wrong = Rotation.from_rotvec(np.radians(90.0) * np.array([0.0, 1.0, 0.0])).as_matrix() @ R
+    args = (scene.lines2d, scene.lines3d, scene.camera)
+    config = TranslationConfig()
+    right = screen_translation(*args, R, clusters, config, MATCH)
+    assert right > 2 * screen_translation(*args, wrong, clusters, config, MATCH)
+    assert right <= estimate_translation(*args, R, clusters, config, MATCH).num_inliers
+    empty = DirectionClusters(np.zeros((0, 3)), np.full(len(scene.lines3d), -1), np.zeros(0))
+    assert (
+        screen_translation(scene.lines2d[:2], scene.lines3d[:2], scene.camera, R, empty, config, MATCH) == 0
+    )
