@@ -24,7 +24,8 @@ logger = logging.getLogger(__name__)
 _MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
 _CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
 _ONE_SIDED = 0.8  # share of a region's points near a crease that must lie on the same side of it
-_LONE_FRACTION = 0.25  # a line without parallel partner in its region is kept if this long (of the longest)
+_LONE_FRACTION = 0.25  # a line off its region's dominant directions is kept if this long (of its size)
+_DOMINANT_SHARE = 0.15  # a dominant direction holds this share of a region's line length
 _MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
 
 
@@ -143,18 +144,22 @@ def contour_segments(
     lines2d_all = np.concatenate([np.zeros((0, 4)), *lines2d])
     uv_lines = (lo + (lines2d_all.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
     uv_lines = refine_edges(uv, uv_lines, 2.0 * cell)
-    uv_lines = snap_directions(uv_lines[_has_parallel(uv_lines, config)], config.snap_angle_deg)
+    uv_lines = snap_directions(
+        uv_lines[_has_parallel(uv_lines, float(extent.max()), config)], config.snap_angle_deg
+    )
     xyz = centroid + uv_lines.reshape(-1, 2) @ basis
     return xyz.reshape(-1, 6)
 
 
-def _has_parallel(lines: np.ndarray, config: Lines3DConfig) -> np.ndarray:
-    """Returns (k,) bool: lines of one region that another of its lines parallels (within snap_angle_deg)
-    or that are long (over a quarter of the region's largest line).
+def _has_parallel(lines: np.ndarray, size: float, config: Lines3DConfig) -> np.ndarray:
+    """Returns (k,) bool: lines of one region that follow one of its dominant directions, i.e. whose
+    direction (within snap_angle_deg) other lines share with at least their own length and with
+    _DOMINANT_SHARE of the region's whole line length, or that are long (_LONE_FRACTION of the region's
+    ``size``, its longer side).
 
-    Man-made boundaries come in parallel families (both sides of a window, ledge, facade), while a ragged
-    boundary (clutter, a scanner's occlusion shadow, the edge of its sampling pattern on the ground) gives
-    lines in every direction, most of them alone in theirs.
+    Man-made boundaries come in a few parallel families (both sides of a window, ledge, facade), while a
+    ragged boundary (clutter, a scanner's occlusion shadow, the edge of its sampling pattern on the
+    ground) is cut into chords in every direction, each family holding a small share.
     """
     if len(lines) == 0:
         return np.zeros(0, dtype=bool)
@@ -162,8 +167,9 @@ def _has_parallel(lines: np.ndarray, config: Lines3DConfig) -> np.ndarray:
     length = np.linalg.norm(d, axis=1)
     theta = np.arctan2(d[:, 1], d[:, 0])
     diff = np.abs((theta[:, None] - theta[None, :] + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
-    partners = (diff <= np.radians(max(config.snap_angle_deg, 1.0))).sum(axis=1) - 1
-    return (partners >= 1) | (length >= _LONE_FRACTION * length.max())
+    family = (diff <= np.radians(max(config.snap_angle_deg, 1.0))) @ length  # includes the line itself
+    dominant = (family >= 2.0 * length) & (family >= _DOMINANT_SHARE * length.sum())
+    return dominant | (length >= _LONE_FRACTION * size)
 
 
 def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:

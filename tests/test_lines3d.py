@@ -150,3 +150,28 @@ def test_degenerate_inputs():
         extract(np.zeros((10, 2)))
     with pytest.raises(InvalidInputError):
         extract(np.full((10, 3), np.nan))
+
+
+def test_found_segments_lie_on_true_edges(scene, segments):
+    """Precision: junk (contour pieces of ragged patches, raster staircases) would create false matches."""
+    _, edges = scene
+    mid = 0.5 * (segments[:, :3] + segments[:, 3:])
+    near_box = (mid[:, :2] > -0.5).all(axis=1) & (mid[:, :2] < [10.5, 8.5]).all(
+        axis=1
+    )  # not the ground's end
+    on_edge = recovered(edges, segments[near_box], min_cover=0.8)  # roles swapped: found on a true edge
+    assert on_edge.all(), f"{(~on_edge).sum()} of {near_box.sum()} segments off every true edge"
+
+
+def test_ragged_patch_gives_no_lines():
+    """A plane whose outline is ragged (vegetation, clutter, a scan's noisy limit) has no straight edges."""
+    rng = np.random.default_rng(4)
+    xy = rng.uniform(-4.0, 4.0, size=(60_000, 2))
+    angle = np.arctan2(xy[:, 1], xy[:, 0])
+    wander = np.cumsum(rng.normal(0.0, 0.05, size=721))  # a random walk round the outline
+    wander -= np.linspace(0.0, wander[-1], 721)  # closed
+    radius = 2.5 + np.interp(angle, np.linspace(-np.pi, np.pi, 721), wander)
+    blob = xy[np.linalg.norm(xy, axis=1) < radius]
+    points = np.c_[blob, rng.normal(0.0, 0.003, len(blob))]
+    found = extract(points)
+    assert len(found) <= 10, found  # 27 chords before families of directions were required
