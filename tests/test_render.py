@@ -8,7 +8,7 @@ from linereg.building import camera_poses, make_building, project_building, stre
 from linereg.demo_scene import make_demo_scene
 from linereg.geometry import invert
 from linereg.lines2d import detect
-from linereg.render import rasterize, render_image
+from linereg.render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
 from linereg.scanner import ScanConfig
 
 
@@ -86,3 +86,39 @@ def test_demo_scene_is_deterministic_and_complete():
     assert a.cloud.shape[1] == 3 and len(a.cloud) > 10_000 and 3 <= len(a.scanner_positions) <= 4
     assert np.array_equal(a.cloud, b.cloud) and np.array_equal(a.images, b.images)
     assert np.array_equal(a.cam_from_world, b.cam_from_world)
+
+
+def test_zbuffer_edge_visibility_agrees_with_ray_casting(scene):
+    building, pose = scene
+    camera = street_camera()
+    face_id, inv_depth = rasterize(building, pose, scaled_camera(camera, 0.5))
+    lengths = visible_edge_lengths(building, pose, camera, face_id, inv_depth)
+    assert lengths.shape == (len(building.edges),) and (lengths >= 0).all()
+    truth, idx = project_building(building, camera, pose)
+    cast = np.zeros(len(building.edges))
+    np.add.at(cast, idx, np.linalg.norm(truth[:, 2:] - truth[:, :2], axis=1))
+    long = cast >= 40.0
+    assert (lengths[long] >= 0.7 * cast[long]).mean() > 0.9  # visible edges are seen
+    assert (lengths[cast == 0] < 20.0).mean() > 0.95  # hidden or out of view ones are not
+
+
+def test_shade_is_lifted_by_the_tone_curve(scene):
+    building, pose = scene
+    camera = street_camera()
+    linear = render_image(building, pose, camera, np.random.default_rng(5), RenderConfig(gamma=1.0))
+    photo = render_image(building, pose, camera, np.random.default_rng(5))
+    assert np.median(photo) > np.median(linear) and photo.max() >= linear.max() - 2
+
+
+def test_demo_poses_show_more_than_a_wall():
+    from linereg.demo_scene import _distinctive, demo_poses
+
+    building = make_building(np.random.default_rng(2))
+    camera = street_camera()
+    poses = demo_poses(building, np.random.default_rng(3), 3, camera)
+    again = demo_poses(building, np.random.default_rng(3), 3, camera)
+    assert np.array_equal(np.array(poses), np.array(again))
+    for pose in poses:
+        face_id, inv_depth = rasterize(building, pose, scaled_camera(camera, 0.5))
+        lengths = visible_edge_lengths(building, pose, camera, face_id, inv_depth)
+        assert (lengths >= 20.0).sum() >= 60 and _distinctive(building, face_id, lengths, camera)

@@ -6,7 +6,7 @@ import pytest
 from linereg.building import make_building, occluded
 from linereg.demo_scene import scanner_positions
 from linereg.errors import InvalidInputError
-from linereg.scanner import ScanConfig, scan
+from linereg.scanner import ScanConfig, scan, thin
 
 COARSE = ScanConfig(angular_step_deg=0.6)
 
@@ -77,3 +77,18 @@ def test_subsampling_determinism_and_density(building):
 def test_bad_positions(building, bad):
     with pytest.raises(InvalidInputError, match="scanner_positions"):
         scan(building, bad, np.random.default_rng(0))
+
+
+def test_thin_caps_the_densest_cells_first():
+    rng = np.random.default_rng(3)
+    dense = rng.uniform(0.0, 0.1, size=(5000, 3))  # one 10 cm cell
+    sparse = np.c_[np.arange(200) * 0.5 + 1.0, np.zeros((200, 2))]  # one point per cell
+    cloud = np.r_[dense, sparse]
+    thinned = thin(cloud, 1000, np.random.default_rng(0), 0.1)
+    assert len(thinned) == 1000
+    assert (np.isin(sparse[:, 0], thinned[:, 0])).all()  # the sparse cells keep every point
+    rows = np.flatnonzero((cloud[:, None] == thinned[None]).all(axis=2).any(axis=1))
+    assert (np.diff(rows) > 0).all()  # a subset in the input order
+    uniform = thin(cloud, 1000, np.random.default_rng(0), 0.0)
+    assert len(uniform) == 1000 and (uniform[:, 0] >= 1.0).sum() < 100  # the old uniform subsample
+    assert len(thin(cloud, 10_000, np.random.default_rng(0), 0.1)) == len(cloud)
