@@ -6,6 +6,7 @@ Sweeps (2 px endpoint noise throughout):
 - ``lines``: 20, 50, 100, 200 map lines at 30 % 3D and 30 % 2D outliers (paper fig. analysis);
 - ``outliers3d``: 3D outlier fraction 0 .. 0.6 at 100 lines, 30 % 2D outliers (paper fig. outlier a);
 - ``outliers2d``: 2D outlier fraction 0, 0.2, 0.4, 0.6 at 100 lines, 30 % 3D outliers (paper fig. outlier b);
+- ``outliers``: 3D and 2D outlier fractions together, 0.3 and 0.6, at 100 lines (the issue's target cells);
 - ``building``: ``synthetic.building_scene`` with its defaults, when that generator exists.
 
 Methods: ``vp`` (``linereg.register``, ours), ``ransac6`` (``register`` with ``method="ransac6"``, the
@@ -43,8 +44,14 @@ FULL: dict[str, tuple[float, ...]] = {
     "lines": (20, 50, 100, 200),
     "outliers3d": (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6),
     "outliers2d": (0.0, 0.2, 0.4, 0.6),
+    "outliers": (0.3, 0.6),
 }
-QUICK: dict[str, tuple[float, ...]] = {"lines": (20, 50), "outliers3d": (0.0, 0.6), "outliers2d": (0.0, 0.6)}
+QUICK: dict[str, tuple[float, ...]] = {
+    "lines": (20, 50),
+    "outliers3d": (0.0, 0.6),
+    "outliers2d": (0.0, 0.6),
+    "outliers": (0.6,),
+}
 QUICK_LINES = 50  # --quick runs the outlier sweeps on smaller scenes too
 QUICK_TRIALS = 3
 QUICK_RANSAC6_ITERATIONS = 200
@@ -54,7 +61,7 @@ QUICK_RANSAC6_ITERATIONS = 200
 class Cell:
     """One point of a sweep: which scenes to draw."""
 
-    sweep: str  # "lines", "outliers3d", "outliers2d" or "building"
+    sweep: str  # "lines", "outliers3d", "outliers2d", "outliers" (both) or "building"
     x: float  # the swept value (number of lines or outlier fraction; 0 for building)
     num_lines: int = DEFAULT_LINES
     outlier3d: float = DEFAULT_OUTLIERS
@@ -84,6 +91,7 @@ def cells(quick: bool) -> list[Cell]:
     out = [Cell("lines", n, int(n)) for n in grid["lines"]]
     out += [Cell("outliers3d", f, lines, outlier3d=f) for f in grid["outliers3d"]]
     out += [Cell("outliers2d", f, lines, outlier2d=f) for f in grid["outliers2d"]]
+    out += [Cell("outliers", f, lines, outlier3d=f, outlier2d=f) for f in grid["outliers"]]
     if hasattr(synthetic, "building_scene"):
         out.append(Cell("building", 0.0, num_lines=0, outlier3d=0.0, outlier2d=0.0))  # fields unused
     return out
