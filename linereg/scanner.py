@@ -97,7 +97,7 @@ def thin(cloud: np.ndarray, target: int, rng: np.random.Generator, voxel_m: floa
     caps = np.arange(1, int(c[-1]) + 1)
     below = np.searchsorted(c, caps)  # cells with fewer points than the cap keep them all
     kept = np.r_[0, np.cumsum(c)][below] + caps * (len(c) - below)
-    k = int(caps[min(np.searchsorted(kept, target), len(caps) - 1)])
+    k = int(caps[min(int(np.searchsorted(kept, target)), len(caps) - 1)])
     chosen = order[rank < k]
     if len(chosen) > target:
         chosen = rng.choice(chosen, target, replace=False)

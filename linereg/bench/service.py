@@ -46,7 +46,7 @@ def run(args: argparse.Namespace) -> int:
     logs.configure(level=30, json_lines=False)  # warnings only: the service logs every reply at INFO
     soak = min(args.soak, 1000) if args.quick else args.soak
     load_before = os.getloadavg()[0]
-    results = {
+    results: dict[str, object] = {
         "latency": bench_latency(30 if args.quick else 200),
         "throughput": bench_throughput(12 if args.quick else 40),
         "soak": bench_soak(soak, args.clients, args.garbage),
@@ -241,7 +241,8 @@ def bench_soak(total: int, clients: int, garbage: float) -> dict:
     from service.loadgen import run_client
 
     counts: dict[str, int] = {}
-    latencies, samples = [], []
+    latencies: list[float] = []
+    samples: list = []
     with _service(2, queue=64) as svc:
         endpoint, pids = svc.config.listen[0], svc.pool.pids()
         stop = threading.Event()
