@@ -19,7 +19,7 @@ def test_camera_validates_and_names_the_argument():
 
 
 def test_camera_from_dict_names_missing_keys():
-    with pytest.raises(linereg.InvalidInputError, match="cam.json: missing key.*fy"):
+    with pytest.raises(linereg.InvalidInputError, match=r"cam\.json: missing key.*fy"):
         linereg.Camera.from_dict({"fx": 1, "cx": 1, "cy": 1, "width": 2, "height": 2}, source="cam.json")
 
 
@@ -54,7 +54,7 @@ def test_config_from_dict_overrides_and_rejects_unknown_keys():
 def test_lines_without_structure_fail_with_a_reason_not_an_exception(camera):
     rng = np.random.default_rng(3)
     lines2d = rng.uniform(0, 480, (40, 4))
-    lines3d = rng.uniform(-1, 1, (40, 6)) + [0, 0, 5, 0, 0, 5]
+    lines3d = rng.uniform(-1, 1, (40, 6)) + np.array([0, 0, 5, 0, 0, 5])
     result = linereg.register(lines2d, lines3d, camera)
     assert isinstance(result, linereg.Registration)
     if not result.success:
