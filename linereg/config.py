@@ -77,10 +77,14 @@ class RotationConfig:
     pair_angle_tolerance_deg: float = 8.0
     third_pair_tolerance_deg: float = 8.0  # a third pair validates a candidate within this (same reason)
     dedupe_angle_deg: float = 1.0  # candidates closer than this are one
-    min_pair_angle_deg: float = 10.0  # two directions closer than this to (anti)parallel cannot fix a rotation
+    min_pair_angle_deg: float = (
+        10.0  # two directions closer than this to (anti)parallel cannot fix a rotation
+    )
     top_k: int = 3  # pairings are tried among the strongest top_k VDs and top_k 3D clusters
     max_candidates: int = 24
-    refit: bool = True  # re-fit each candidate's R to the member segments of its paired VDs (not just the VDs)
+    refit: bool = (
+        True  # re-fit each candidate's R to the member segments of its paired VDs (not just the VDs)
+    )
 
 
 @dataclass(frozen=True)
@@ -162,8 +166,12 @@ class Ransac6Config:
 class LineDetectConfig:
     """2D segments: OpenCV LSD, then merging of collinear fragments and removal of short isolated ones."""
 
-    lsd_scale: float = 0.7  # LSD's Gaussian subsampling (OpenCV default 0.8): lower is faster, fewer fragments
-    max_work_pixels: int = 600_000  # bigger images are subsampled further so LSD sees at most this many pixels
+    lsd_scale: float = (
+        0.7  # LSD's Gaussian subsampling (OpenCV default 0.8): lower is faster, fewer fragments
+    )
+    max_work_pixels: int = (
+        600_000  # bigger images are subsampled further so LSD sees at most this many pixels
+    )
     merge_angle_deg: float = 3.0  # fragments whose directions differ by more are not one line
     merge_offset_px: float = 1.5  # every fragment endpoint must lie within this of the merged line
     merge_gap_frac: float = 0.02  # largest gap bridged, fraction of the image diagonal (paper: 60 px)

@@ -29,7 +29,11 @@ def test_camera_from_dict_names_missing_keys():
         (np.zeros((10, 3)), np.ones((10, 6)), "lines2d.*shape"),
         (np.full((10, 4), np.nan), np.ones((10, 6)), "lines2d.*NaN"),
         (np.random.default_rng(0).random((10, 4)), np.ones((10, 5)), "lines3d.*shape"),
-        (np.random.default_rng(0).random((2, 4)), np.random.default_rng(0).random((10, 6)), "lines2d.*at least"),
+        (
+            np.random.default_rng(0).random((2, 4)),
+            np.random.default_rng(0).random((10, 6)),
+            "lines2d.*at least",
+        ),
         ("not an array", np.ones((10, 6)), "lines2d"),
     ],
 )
