@@ -73,10 +73,12 @@ def make_demo_scene(
 
 
 def scanner_positions(building: Building, clearance_m: float = 8.0) -> np.ndarray:
-    """Returns (S, 3) float64 scanner positions (S <= 4): the middle of the site and three outer corners.
+    """Returns (S, 3) float64 scanner positions (S <= 5): the middle of the site and its four outer corners.
 
-    The middle is the courtyard (or the street) and sees the inner facades; two opposite outer corners
-    see every outer facade, a third adds overlap. Positions inside a block are left out.
+    The middle is the courtyard (or the street) and sees the inner facades; each outer corner sees two
+    outer sides, so every outer facade is scanned from both its ends (one corner alone sees the far
+    half of a long facade at a grazing angle, too sparse for its windows). Positions inside a block are
+    left out.
     """
     lo, hi = building.blocks[:, 0, :2].min(axis=0), building.blocks[:, 1, :2].max(axis=0)
     lo, hi = lo - clearance_m, hi + clearance_m
@@ -86,6 +88,7 @@ def scanner_positions(building: Building, clearance_m: float = 8.0) -> np.ndarra
             [hi[0], hi[1]],
             [lo[0], lo[1]],
             [hi[0], lo[1]],
+            [lo[0], hi[1]],
         ]
     )
     above = candidates[:, None, :] > building.blocks[None, :, 0, :2] - 1.0
@@ -129,12 +132,12 @@ def demo_poses(
 
 def _distinctive(building: Building, face_id: np.ndarray, lengths: np.ndarray, camera: Camera) -> bool:
     """Returns whether a view shows two facade orientations (each on >= 8 % of the image: a corner) or a
-    block's vertical corner or roof line over at least a third of the image (where the building ends)."""
+    block's vertical corner or roof line over at least half the image (where the building ends)."""
     seen = face_id[face_id >= 0]
     normals = building.normals[seen]
     facade = np.abs(normals[:, 2]) < 0.5
     # the 4 horizontal Manhattan orientations: +x, +y, -x, -y
     orientation = np.round(np.arctan2(normals[facade, 1], normals[facade, 0]) / (0.5 * np.pi)).astype(int) % 4
     share = np.bincount(orientation, minlength=4) / face_id.size
-    ends = np.isin(building.edge_kind, ("corner", "roof")) & (lengths >= camera.height / 3.0)
+    ends = np.isin(building.edge_kind, ("corner", "roof")) & (lengths >= camera.height / 2.0)
     return bool((share >= 0.08).sum() >= 2 or ends.any())
