@@ -173,12 +173,15 @@ def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator,
     kinds_sorted = sorted(_KINDS)
     kind = np.searchsorted(np.array(kinds_sorted), building.face_kind)
     albedo = np.array([_ALBEDO[k] for k in kinds_sorted])[kind]
-    # every block its own plaster tint, every face (window pane, door) a slightly different albedo
+    # every block its own plaster tint, every window pane and door a slightly different albedo
     num_blocks = int(building.face_block.max()) + 2
     tint = rng.uniform(0.75, 1.15, size=(num_blocks, 3)) * rng.uniform(0.8, 1.1, size=(num_blocks, 1))
     wall = building.face_kind == "wall"
     albedo[wall] *= tint[building.face_block[wall] + 1]
-    albedo *= rng.uniform(0.9, 1.1, size=(len(albedo), 1))
+    # walls and the ground are cut into rectangles round openings and footprints: one material per
+    # block and one for the ground, or every cut would show as a seam (a line no scan has)
+    jitter = rng.uniform(0.9, 1.1, size=(len(albedo), 1))
+    albedo *= np.where(np.isin(building.face_kind, ("window", "door"))[:, None], jitter, 1.0)
     # window and door reveals (wall quads as narrow as the recess) lie in the opening's shadow
     quads = building.faces
     narrow = np.minimum(
