@@ -204,6 +204,31 @@ class RegisterConfig:
         """Returns the default config with the keys of ``d`` (nested per section) overridden."""
         return _override(cls(), d, "config")
 
+    @classmethod
+    def preset(cls, name: str) -> RegisterConfig:
+        """Returns the named preset of ``PRESETS`` (``"fast"`` is the default config)."""
+        if name not in PRESETS:
+            raise InvalidInputError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
+        return cls.from_dict(PRESETS[name])
+
+
+# Named presets: overrides of the defaults, nested per section (hloc-style, one dict).
+PRESETS: dict[str, dict[str, Any]] = {
+    # the defaults: tuned for the paper's scenes and robot queries (tens of ms on ~100 segments)
+    "fast": {},
+    # large maps of repetitive buildings (windows): every rotation candidate gets a bigger screening budget,
+    # more finalists and 3x the translation hypotheses. On the demo's scan (1,900 map segments) 9/10 images
+    # localize instead of 5/10, at ~1-2 s instead of ~0.6 s per image (see README, bench demo).
+    "thorough": {
+        "translation": {
+            "screen_max_hypotheses": 40_000,
+            "screen_num_verify": 8,
+            "finalists": 6,
+            "max_hypotheses": 60_000,
+        }
+    },
+}
+
 
 def _override(obj: Any, d: dict[str, Any], path: str) -> Any:
     if not isinstance(d, dict):

@@ -19,10 +19,10 @@ def free_loopback_endpoint() -> str:
 
 @contextmanager
 def local_service(
-    map_path: str, workers: int = 1, loader: str = "service.engine:load_map_engine"
+    map_path: str, workers: int = 1, loader: str = "service.engine:load_map_engine", preset: str = "fast"
 ) -> Iterator[Client]:
     """Yields a Client of a service (worker processes, zenoh router on loopback) serving ``map_path``."""
-    config = ServiceConfig(loader=loader, loader_args=(str(map_path), None), workers=workers,
+    config = ServiceConfig(loader=loader, loader_args=(str(map_path), None, preset), workers=workers,
                            listen=(free_loopback_endpoint(),))  # fmt: skip
     with Service(config) as service, Client(config.listen[0], map_name=service.map_name) as client:
         yield client

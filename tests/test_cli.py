@@ -36,12 +36,10 @@ def leftovers(folder) -> list[str]:
 
 @pytest.fixture(scope="module")
 def scene():
-    """The demo scene with a coarser scan than the default (300 k points instead of 1 M: a faster map)."""
+    """The demo scene as `linereg demo` makes it (a coarser scan gives a map too poor to localize in)."""
     from linereg.demo_scene import make_demo_scene
-    from linereg.scanner import ScanConfig
 
-    small_scan = ScanConfig(angular_step_deg=0.4, target_points=300_000)
-    return make_demo_scene(seed=1, num_images=NUM_IMAGES, scan_config=small_scan)
+    return make_demo_scene(seed=0, num_images=NUM_IMAGES)
 
 
 @pytest.fixture(scope="module")

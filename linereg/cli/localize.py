@@ -16,6 +16,7 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
+from ..config import PRESETS, RegisterConfig
 from ..errors import InvalidInputError, LineregError
 from .progress import Progress
 
@@ -35,6 +36,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--overlay", type=Path, metavar="DIR", help="write one overlay PNG per image here")
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--resume", action="store_true", help="skip images already in --out")
+    p.add_argument(
+        "--preset",
+        default="thorough",
+        choices=sorted(PRESETS),
+        help="registration preset (default thorough: batch work favours success over speed)",
+    )
     p.set_defaults(func=run)
 
 
@@ -52,7 +59,7 @@ def run(args: argparse.Namespace) -> int:
     jobs = [j for j in jobs if j[0] not in results]
     overlay_dir = str(args.overlay) if args.overlay else None
     progress = Progress(len(jobs), "localize")
-    init = (str(args.map), overlay_dir)
+    init = (str(args.map), overlay_dir, args.preset)
     last_save = time.monotonic()
     with _executor(args.workers, init) as pool:
         for path, record in pool.map(_localize_one, jobs):
@@ -105,10 +112,11 @@ def _executor(workers: int, init: tuple):
     return ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init)
 
 
-def _init_worker(map_path: str, overlay_dir: str | None) -> None:
+def _init_worker(map_path: str, overlay_dir: str | None, preset: str) -> None:
     from ..linemap import LineMap
 
     _worker_state["map"] = LineMap.load(map_path)
+    _worker_state["config"] = RegisterConfig.preset(preset)
     _worker_state["overlay_dir"] = overlay_dir
 
 
@@ -125,7 +133,7 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
         start = time.perf_counter()
         lines2d = detect(image, camera)
         detect_s = time.perf_counter() - start
-        result = localize_segments(lines2d, line_map, camera.undistorted())
+        result = localize_segments(lines2d, line_map, camera.undistorted(), _worker_state["config"])
         result.timings = {"lines2d": detect_s} | result.timings
         result.timings["total"] = result.timings.get("total", 0.0) + detect_s
     except LineregError as e:  # a bad input file: named at the end, the batch goes on
