@@ -20,6 +20,7 @@ import numpy as np
 from ..config import RegisterConfig
 from .progress import Progress
 
+CORRECT_DEG, CORRECT_M = 2.0, 0.5  # a returned pose this close to the truth counts as right
 PRESET = "thorough"  # a large, repetitive map (see linereg.config.PRESETS)
 
 
@@ -97,12 +98,17 @@ def print_table(rows: list) -> None:
         )
         print(line + f"  {res.reason}")
     ok = [r for r in rows if r[1].success]
-    if ok:
-        rot = float(np.median([r[2][0] for r in ok]))
-        pos = float(np.median([r[2][1] for r in ok]))
-        print(f"localized {len(ok)}/{len(rows)}; median R_e {rot:.3f} deg, median position error {pos:.3f} m")
-    else:
+    if not ok:
         print(f"localized 0/{len(rows)}")
+        return
+    rot = float(np.median([r[2][0] for r in ok]))
+    pos = float(np.median([r[2][1] for r in ok]))
+    right = sum(r[2][0] < CORRECT_DEG and r[2][1] < CORRECT_M for r in ok)
+    print(
+        f"poses returned for {len(ok)}/{len(rows)} photos, {right} of them right "
+        f"(R_e < {CORRECT_DEG:g} deg, position < {CORRECT_M:g} m); "
+        f"median R_e {rot:.3f} deg, median position error {pos:.3f} m"
+    )
 
 
 def say(text: str) -> None:
