@@ -124,6 +124,7 @@ class TranslationConfig:
     screen_max_hypotheses: int = 10_000
     screen_num_verify: int = 4
     finalists: int = 4
+    finalist_fraction: float = 0.3  # ... and only those screened at >= this fraction of the best count
     # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``) are
     # all refined; the best refined fit wins (2D length of the inliers per pixel of RMS residual): a
     # symmetric building seen from its far side explains as many segments before refinement, not as well after

@@ -142,9 +142,13 @@ def _translations(
         args = (lines2d, lines3d, camera)
         screened = [screen_translation(*args, R, clusters3d, tc, config.match) for R in Rs]
         order = np.argsort(np.negative(screened), kind="stable")
-        poses = [estimate(Rs[k]) for k in order[: tc.finalists]]
+        # a candidate screened far below the best (a wrong rotation gets ~5-10 % of the true count) is not
+        # worth a full search; near-ties (symmetric buildings) all are
+        close = np.asarray(screened)[order] >= tc.finalist_fraction * max(screened)
+        count = int(min(tc.finalists, max(1, close.sum())))
+        poses = [estimate(Rs[k]) for k in order[:count]]
         # the others keep their screening count: enough for the runner-up, never refined
-        poses += [_Pose(Rs[k], _screened_only(screened[k])) for k in order[tc.finalists :]]
+        poses += [_Pose(Rs[k], _screened_only(screened[k])) for k in order[count:]]
     else:
         poses = [estimate(R) for R in Rs]
     return sorted(poses, key=lambda p: -p.hypothesis.num_inliers)
