@@ -27,7 +27,7 @@ TARGETS = {"success_rate": 1.0, "rotation_deg_median": 0.5, "position_m_median":
 
 
 def localize_image(
-    image: np.ndarray, line_map: Any, camera: Any, truth: np.ndarray, k: int
+    image: np.ndarray, line_map: Any, camera: Any, truth: np.ndarray, k: int, config: Any = None
 ) -> dict[str, Any]:
     """Returns the trial record of one photo: pose errors, success, inliers, stage times in ms."""
     from ..geometry import pose_errors
@@ -36,7 +36,7 @@ def localize_image(
 
     start = time.perf_counter()
     try:
-        result = localize(image, line_map, camera)
+        result = localize(image, line_map, camera, config)
     except Exception as e:  # a crash is a failed image with its cause, not a dead benchmark
         result = Registration(False, reason=f"{type(e).__name__}: {e}")
     seconds = time.perf_counter() - start
@@ -48,11 +48,15 @@ def localize_image(
     return record | {"image": k, "ambiguity": result.ambiguity, "stages_ms": stages}
 
 
-def run_seed(seed: int, num_images: int, progress: report.Progress | None = None) -> dict[str, Any]:
+def run_seed(
+    seed: int, num_images: int, progress: report.Progress | None = None, preset: str = "thorough"
+) -> dict[str, Any]:
     """Returns one seed's results: scene/map/localization seconds, map size and one record per image."""
+    from ..config import RegisterConfig
     from ..demo_scene import make_demo_scene
     from ..linemap import LineMap
 
+    config = RegisterConfig.preset(preset)
     t0, cpu0 = time.perf_counter(), time.process_time()
     scene = make_demo_scene(seed=seed, num_images=num_images)
     t1 = time.perf_counter()
@@ -60,7 +64,7 @@ def run_seed(seed: int, num_images: int, progress: report.Progress | None = None
     t2 = time.perf_counter()
     images = []
     for k, (image, truth) in enumerate(zip(scene.images, scene.cam_from_world, strict=True)):
-        images.append(localize_image(image, line_map, scene.camera, truth, k) | {"seed": seed})
+        images.append(localize_image(image, line_map, scene.camera, truth, k, config) | {"seed": seed})
         if progress is not None:
             progress.advance(f"seed {seed} image {k}")
     t3 = time.perf_counter()
@@ -169,6 +173,7 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--images", type=int, default=10, help="photos per scene (default 10)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[0], help="scene seeds (default 0)")
     parser.add_argument("--out", type=Path, default=Path("bench-results/demo"), help="output directory")
+    parser.add_argument("--preset", default="thorough", help="registration preset (default: the demo's)")
     parser.set_defaults(func=run)
 
 
@@ -182,14 +187,14 @@ def run(args: argparse.Namespace) -> int:
     seeds = []
     try:
         for seed in args.seeds:
-            seeds.append(run_seed(seed, args.images, progress))
+            seeds.append(run_seed(seed, args.images, progress, args.preset))
             progress.note(f"seed {seed}: whole {seeds[-1]['whole_s']:.1f} s")
     finally:
         progress.close()
     records = [r for s in seeds for r in s["images"]]
     results = {
         "benchmark": "demo",
-        "options": {"images": args.images, "seeds": args.seeds},
+        "options": {"images": args.images, "seeds": args.seeds, "preset": args.preset},
         "targets": TARGETS,
         "errors_over": "successful images only; runtimes over all images",
         "seeds": seeds,
