@@ -105,7 +105,7 @@ def print_table(rows: list) -> None:
     pos = float(np.median([r[2][1] for r in ok]))
     right = sum(r[2][0] < CORRECT_DEG and r[2][1] < CORRECT_M for r in ok)
     print(
-        f"poses returned for {len(ok)}/{len(rows)} photos, {right} of them right "
+        f"localized {len(ok)}/{len(rows)} photos, {right} of them right "
         f"(R_e < {CORRECT_DEG:g} deg, position < {CORRECT_M:g} m); "
         f"median R_e {rot:.3f} deg, median position error {pos:.3f} m"
     )
