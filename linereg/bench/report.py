@@ -10,9 +10,7 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import sys
-import tempfile
 import time
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
@@ -130,18 +128,11 @@ def jsonable(obj: Any) -> Any:
 
 
 def write_atomic(path: str | Path, data: bytes) -> Path:
-    """Returns ``path`` after writing ``data`` to a temp file beside it and renaming it into place."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    return path
+    """Returns ``path`` after writing ``data`` atomically (``io.write_bytes_atomic``: temp file + rename)."""
+    from ..io import write_bytes_atomic
+
+    write_bytes_atomic(path, data)
+    return Path(path)
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> Path:
