@@ -16,6 +16,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
+from .creases import crease_segments
 from .errors import InvalidInputError
 from .planes import Planes, segment_planes, voxel_downsample
 
@@ -23,7 +24,6 @@ logger = logging.getLogger(__name__)
 
 _MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
 _CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
-_ONE_SIDED = 0.8  # share of a region's points near a crease that must lie on the same side of it
 _LONE_FRACTION = 0.25  # a line off its region's dominant directions is kept if this long (of its size)
 _DOMINANT_SHARE = 0.15  # a dominant direction holds this share of a region's line length
 _MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
@@ -337,127 +337,6 @@ def _vertex_indices(contour: np.ndarray, poly: np.ndarray) -> np.ndarray:
     match = (contour[:, None, :] == poly[None, :, :]).all(axis=2)  # (n, k)
     idx = [int(np.argmax(match[:, j])) for j in range(len(poly))]
     return np.unique(idx)
-
-
-def crease_segments(
-    points: np.ndarray,
-    planes: Planes,
-    members: list[np.ndarray],
-    large: np.ndarray,
-    cells: np.ndarray,
-    config: Lines3DConfig,
-) -> np.ndarray:
-    """Returns (K, 6) plane-plane intersection segments of touching ``large`` (R,) regions, clipped to
-    where both have points within 3 cells of the line (a crease has no boundary in the cloud, only two
-    planes meeting)."""
-    out = []
-    pairs = planes.pairs[large[planes.pairs].all(axis=1)] if len(planes.pairs) else planes.pairs
-    directions = np.cross(planes.normals[pairs[:, 0]], planes.normals[pairs[:, 1]])
-    sines = np.linalg.norm(directions, axis=1)
-    keep = sines >= np.sin(np.radians(config.crease_min_angle_deg))
-    boxes = {
-        r: (points[members[r]].min(axis=0), points[members[r]].max(axis=0)) for r in np.unique(pairs[keep])
-    }
-    trees: dict[int, cKDTree] = {}
-    for (a, b), direction in zip(pairs[keep], directions[keep] / sines[keep, None], strict=True):
-        na, nb = planes.normals[a], planes.normals[b]
-        cell = max(cells[a], cells[b])
-        # the point of the line nearest both centroids' planes: n_a.x = d_a, n_b.x = d_b, direction.x = mean
-        mid = 0.5 * (planes.centroids[a] + planes.centroids[b]) @ direction
-        rhs = [na @ planes.centroids[a], nb @ planes.centroids[b], mid]
-        origin = np.linalg.solve(np.stack([na, nb, direction]), rhs)
-        span = _overlap(boxes[a], boxes[b], origin, direction, 3 * cell)
-        if span is None:
-            continue
-        ta, perp_a = _near_line(points, members[a], trees, a, origin, direction, span, 3 * cell)
-        tb, perp_b = _near_line(points, members[b], trees, b, origin, direction, span, 3 * cell)
-        for t0, t1 in _common_runs(ta, tb, cell, config):
-            if _one_sided(ta, perp_a, t0, t1) and _one_sided(tb, perp_b, t0, t1):
-                out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
-    return np.array(out).reshape(-1, 6)
-
-
-def _one_sided(t: np.ndarray, perp: np.ndarray, t0: float, t1: float) -> bool:
-    """Returns whether a region's points near a crease run lie on one side of it: a crease bounds both
-    regions, while facets of a rough surface that cross mid-way have points on both sides."""
-    inside = (t >= t0) & (t <= t1)
-    if not inside.any():
-        return False
-    p = perp[inside]
-    side = p @ (p.sum(axis=0) / max(np.linalg.norm(p.sum(axis=0)), 1e-12))
-    return bool(max((side > 0).mean(), (side < 0).mean()) >= _ONE_SIDED)
-
-
-def _overlap(box_a, box_b, origin: np.ndarray, direction: np.ndarray, margin: float):
-    """Returns the (t0, t1) stretch of the line inside both regions' bounding boxes (grown by margin)."""
-    lo = np.maximum(box_a[0], box_b[0]) - margin
-    hi = np.minimum(box_a[1], box_b[1]) + margin
-    if (lo > hi).any():
-        return None
-    t0, t1 = -np.inf, np.inf
-    for k in range(3):  # slab clipping of the line against the box
-        if abs(direction[k]) < 1e-12:
-            if not lo[k] <= origin[k] <= hi[k]:
-                return None
-            continue
-        ta, tb = sorted(((lo[k] - origin[k]) / direction[k], (hi[k] - origin[k]) / direction[k]))
-        t0, t1 = max(t0, ta), min(t1, tb)
-    return (t0, t1) if t1 > t0 else None
-
-
-def _near_line(
-    points: np.ndarray,
-    member: np.ndarray,
-    trees: dict[int, cKDTree],
-    region: int,
-    origin: np.ndarray,
-    direction: np.ndarray,
-    span: tuple[float, float],
-    radius: float,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((k,) line parameters, (k, 3) offsets from the line) of the region's points within
-    ``radius`` of the line's span."""
-    if region not in trees:
-        trees[region] = cKDTree(points[member])
-    samples = origin + np.outer(np.arange(span[0], span[1] + radius, radius), direction)
-    near = trees[region].query_ball_point(samples, 1.5 * radius)
-    idx = np.unique(np.concatenate([np.zeros(0, np.int64), *near]).astype(np.int64))
-    p = points[member[idx]] - origin
-    t = p @ direction
-    perp = p - np.outer(t, direction)
-    near_line = np.einsum("ij,ij->i", perp, perp) <= radius * radius
-    return t[near_line], perp[near_line]
-
-
-def _common_runs(
-    ta: np.ndarray, tb: np.ndarray, cell: float, config: Lines3DConfig
-) -> list[tuple[float, float]]:
-    """Returns the (t0, t1) intervals, at least min_length_m long, covered by both parameter sets."""
-    if len(ta) == 0 or len(tb) == 0:
-        return []
-    lo, hi = max(ta.min(), tb.min()), min(ta.max(), tb.max())
-    if hi - lo < config.min_length_m:
-        return []
-    nbins = int((hi - lo) / cell) + 1
-    occ_a = np.bincount(((ta[(ta >= lo) & (ta <= hi)] - lo) / cell).astype(np.int64), minlength=nbins) > 0
-    occ_b = np.bincount(((tb[(tb >= lo) & (tb <= hi)] - lo) / cell).astype(np.int64), minlength=nbins) > 0
-    both = _close_1d(occ_a & occ_b, max(int(config.collinear_gap_m / cell / 2), 1))
-    edges = np.diff(np.r_[0, both.astype(np.int8), 0])
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    runs = [(lo + s * cell, min(lo + e * cell, hi)) for s, e in zip(starts, stops, strict=True)]
-    return [(t0, t1) for t0, t1 in runs if t1 - t0 >= config.min_length_m]
-
-
-def _close_1d(mask: np.ndarray, half: int) -> np.ndarray:
-    """Returns the (n,) boolean mask with gaps of up to 2 * half samples filled (1D morphological closing)."""
-    kernel = np.ones(2 * half + 1)
-    padded = np.r_[np.zeros(half), mask.astype(np.float64), np.zeros(half)]
-    dilated = (np.convolve(padded, kernel, "same") > 0).astype(np.float64)
-    eroded = (
-        np.convolve(np.r_[np.ones(half), dilated[half:-half], np.ones(half)], kernel, "same")
-        >= len(kernel) - 0.5
-    )
-    return eroded[half:-half]
 
 
 def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig) -> np.ndarray:
