@@ -11,11 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .building import Building, _aim, _is_free, _street_view, make_building, street_camera
+from .building import Building, make_building
 from .camera import Camera
 from .errors import LineregError
 from .render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
 from .scanner import ScanConfig, scan
+from .views import _aim, _is_free, _street_view, street_camera
 
 log = logging.getLogger(__name__)
 
@@ -107,7 +108,7 @@ def demo_poses(
     min_visible_edges: int = 60,
     max_tries: int = 100,
 ) -> list[np.ndarray]:
-    """Returns n (4, 4) cam_from_world street views (``building._street_view``) a photographer would take.
+    """Returns n (4, 4) cam_from_world street views (``views._street_view``) a photographer would take.
 
     Each must show at least ``min_visible_edges`` edges of 20 px or more and some structure that fixes
     where along the building it stands (``_distinctive``), not just a patch of wall with a window grid,

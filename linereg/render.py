@@ -273,7 +273,7 @@ def visible_edge_lengths(
 ) -> np.ndarray:
     """Returns (E,) float64 the visible image length (px of ``camera``) of every building edge.
 
-    A z-buffer test instead of ray casting (``building.occluded``): each edge is sampled, and a sample is
+    A z-buffer test instead of ray casting (``views.occluded``): each edge is sampled, and a sample is
     visible when it projects into the image, in front of the camera, and no face in the (H', W') buffers
     ``face_id`` / ``inv_depth`` (from ``rasterize`` at any resolution of the same view) is more than
     ``tolerance`` nearer at its pixel or next to it (an edge lies on the border of its own faces).

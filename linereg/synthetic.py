@@ -279,14 +279,15 @@ def building_scene(
     - Map (``lines3d``): every building edge (``make_building(rng, config)``, hidden back facades
       included) then ``num_distractors`` random street-level 3D segments (scanned clutter that the image
       does not show: cars gone, trees), at rows ``len(building.edges):``.
-    - Camera: default ``building.street_camera()`` (640x480, f = 600), pose from ``camera_poses``.
+    - Camera: default ``views.street_camera()`` (640x480, f = 600), pose from ``camera_poses``.
     - 2D: visible parts of the edges (frustum, occlusion by every face, longest visible run), >= 20 px,
       then ``fragment`` (30 % shortened, 30 % of long ones split into 2-3 pieces), Gaussian endpoint noise
       ``noise_px``; every piece is a true match of its edge.
     - 2D outliers: clutter segments of 20-60 px, centres in the lower 60 % of the image (cars, trees),
       making ``outlier2d_fraction`` of all 2D segments. Shuffled; ``true_matches`` sorted by i2d.
     """
-    from .building import camera_poses, make_building, project_building, street_camera
+    from .building import make_building
+    from .views import camera_poses, project_building, street_camera
 
     camera = camera or street_camera()
     building = make_building(rng, config)

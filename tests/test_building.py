@@ -1,20 +1,11 @@
 import numpy as np
 import pytest
 
-from linereg.building import (
-    EDGE_KINDS,
-    FACE_KINDS,
-    BuildingConfig,
-    camera_poses,
-    make_building,
-    occluded,
-    project_building,
-    rect_minus,
-    street_camera,
-)
+from linereg.building import EDGE_KINDS, FACE_KINDS, BuildingConfig, make_building, rect_minus
 from linereg.geometry import camera_center, line_coefficients
 from linereg.matching import project_segments
 from linereg.synthetic import building_scene
+from linereg.views import camera_poses, occluded, project_building, street_camera
 
 SMALL = BuildingConfig(layout="street", blocks_per_side=1, floors=(3, 4))
 

@@ -151,8 +151,8 @@ def test_map_info_rejects_a_corrupt_map(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     """A small map (the edges of a box), a 640x480 camera file and a valid image, for the bad-input cases."""
-    from linereg.building import street_camera
     from linereg.linemap import LineMap
+    from linereg.views import street_camera
 
     folder = tmp_path_factory.mktemp("small")
     corners = np.array([[x, y, z] for x in (0, 4) for y in (0, 3) for z in (0, 2)], float)

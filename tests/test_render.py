@@ -4,12 +4,13 @@ import numpy as np
 import pytest
 
 import linereg
-from linereg.building import camera_poses, make_building, project_building, street_camera
+from linereg.building import make_building
 from linereg.demo_scene import make_demo_scene
 from linereg.geometry import invert
 from linereg.lines2d import detect
 from linereg.render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
 from linereg.scanner import ScanConfig
+from linereg.views import camera_poses, project_building, street_camera
 
 
 @pytest.fixture(scope="module")
