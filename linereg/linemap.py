@@ -26,6 +26,7 @@ from .config import Lines3DConfig, ParallelConfig
 from .directions import DirectionClusters
 from .errors import FileFormatError, InvalidInputError
 from .geometry import camera_center
+from .registration import check_segments
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +90,7 @@ class LineMap:
         """Returns the map of given (M, 6) float64 segments; ``tile_m`` defaults to 1/32 of the extent."""
         from .parallel import parallel_clusters  # imported here: the map format does not depend on it
 
-        segments = _check_segments(lines3d)
+        segments = check_segments(lines3d, "lines3d", 6)
         if progress:
             progress("clusters")
         clusters = parallel_clusters(segments, parallel_config) if len(segments) else _no_clusters()
@@ -232,15 +233,6 @@ class LineMap:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
-
-
-def _check_segments(lines3d: object) -> np.ndarray:
-    arr = np.asarray(lines3d, dtype=np.float64)
-    if arr.ndim != 2 or arr.shape[1] != 6:
-        raise InvalidInputError(f"lines3d must have shape (M, 6), got {arr.shape}")
-    if not np.isfinite(arr).all():
-        raise InvalidInputError("lines3d must be finite (no NaN or inf)")
-    return arr
 
 
 def _no_clusters() -> DirectionClusters:
