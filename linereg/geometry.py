@@ -44,6 +44,17 @@ def transform_segments(a_from_b: np.ndarray, segments_b: np.ndarray) -> np.ndarr
     return ends.reshape(-1, 6)
 
 
+def rotation_from_vector(omega: np.ndarray) -> np.ndarray:
+    """Returns the (3, 3) rotation of a (3,) rotation vector (axis * angle in radians, Rodrigues' formula)."""
+    omega = np.asarray(omega, dtype=np.float64).reshape(3)
+    angle = float(np.linalg.norm(omega))
+    if angle < 1e-12:
+        return np.eye(3)
+    k = omega / angle
+    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
+
+
 def nearest_rotation(M: np.ndarray) -> np.ndarray:
     """Returns the proper rotation closest to M in Frobenius norm (orthogonal Procrustes via SVD)."""
     U, _, Vt = np.linalg.svd(M)

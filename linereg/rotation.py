@@ -19,7 +19,7 @@ import numpy as np
 from .camera import Camera
 from .config import RegisterConfig, RotationConfig
 from .directions import DirectionClusters
-from .geometry import interpretation_normals, rotation_error_deg, segment_lengths
+from .geometry import interpretation_normals, rotation_error_deg, rotation_from_vector, segment_lengths
 from .parallel import parallel_clusters
 from .vanishing import vanishing_directions
 
@@ -139,18 +139,8 @@ def _refit(
         sigma = 2.0 * 1.4826 * float(np.median(np.abs(scaled))) + 1e-12
         c = w / np.sqrt(1.0 + (scaled / sigma) ** 2)
         omega = np.linalg.lstsq(J * c[:, None], -r * c, rcond=None)[0]
-        R = _exp(omega) @ R
+        R = rotation_from_vector(omega) @ R
     return R
-
-
-def _exp(omega: np.ndarray) -> np.ndarray:
-    """Returns the (3, 3) rotation of rotation vector omega (Rodrigues)."""
-    angle = float(np.linalg.norm(omega))
-    if angle < 1e-12:
-        return np.eye(3)
-    k = omega / angle
-    K = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
-    return np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * K @ K
 
 
 def _consistent_pairings(V: np.ndarray, D: np.ndarray, config: RotationConfig) -> np.ndarray:
