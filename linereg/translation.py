@@ -12,7 +12,7 @@ inlier count; "search" first polishes them by robust least squares on the coplan
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -32,13 +32,18 @@ class TranslationHypothesis:
 
     t: (3,) float64 so that ``cam_from_world = [R | t]``; matches: (K, 2) int64 ``(i2d, j3d)`` from
     ``match_segments`` at ``[R | t]``; num_inliers = K; runner_up_inliers: inliers of the best hypothesis
-    whose camera centre is clearly elsewhere (> ``config.distinct_fraction`` of the scene size away).
+    whose camera centre is clearly elsewhere (> ``config.distinct_fraction`` of the scene size away);
+    runner_up_t (3,) and runner_up_matches (K', 2): that hypothesis itself (NaN / empty if none), which
+    the pipeline's contest refines too: at the true rotation of a repetitive facade the truth is
+    sometimes the runner-up by a few inliers.
     """
 
     t: np.ndarray
     matches: np.ndarray
     num_inliers: int
     runner_up_inliers: int
+    runner_up_t: np.ndarray = field(default_factory=lambda: np.full(3, np.nan))
+    runner_up_matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
 
 
 def estimate_translation(
@@ -169,7 +174,7 @@ def finish(
     if len(other) > len(best):
         best_t, best, other = other_t, other, best
     log.debug("translation: %d inliers, runner-up %d", len(best), len(other))
-    return TranslationHypothesis(best_t, best, len(best), len(other))
+    return TranslationHypothesis(best_t, best, len(best), len(other), other_t, other)
 
 
 def _polish(
