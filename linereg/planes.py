@@ -9,7 +9,6 @@ All coordinates are local (the caller subtracts a georeferenced offset first).
 
 from __future__ import annotations
 
-import itertools
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -20,26 +19,11 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
+from .voxels import AROUND, Voxels, adjacent_pairs, build_voxels, fit_planes, neighbors, voxel_downsample
+
+__all__ = ["Planes", "fit_planes", "grow_regions", "segment_planes", "voxel_downsample"]
 
 logger = logging.getLogger(__name__)
-
-# the 13 "forward" offsets of the 26-neighbourhood; each adjacent pair is visited once
-_OFFSETS = np.array([o for o in itertools.product((-1, 0, 1), repeat=3) if o > (0, 0, 0)], dtype=np.int64)
-
-
-@dataclass(frozen=True)
-class Voxels:
-    """Occupied voxels: ``keys`` (V, 3) int64 sorted, ``of_point`` (P,) voxel of each point,
-    ``neighbors`` (V, 13) int64 index of the forward neighbour voxel or -1, plane fits of each voxel."""
-
-    keys: np.ndarray
-    of_point: np.ndarray
-    neighbors: np.ndarray
-    counts: np.ndarray  # (V,) int64
-    centroids: np.ndarray  # (V, 3)
-    normals: np.ndarray  # (V, 3) unit
-    curvature: np.ndarray  # (V,) lambda_min / sum(lambda), inf for too few points
-    size_m: float
 
 
 @dataclass(frozen=True)
@@ -56,82 +40,34 @@ class Planes:
     spacing_m: np.ndarray
 
 
-def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
-    """Returns (P', 3) float64 centroids of the points in each occupied voxel of size ``voxel_m``."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    _, inverse = np.unique(keys, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
-    counts = np.bincount(inverse).astype(np.float64)
-    return np.stack([np.bincount(inverse, points[:, i]) for i in range(3)], axis=1) / counts[:, None]
+def grow_regions(
+    voxels: Voxels, centroids: np.ndarray, normals: np.ndarray, curvature: np.ndarray, config: Lines3DConfig
+) -> np.ndarray:
+    """Returns (V,) int64 region label of each voxel (-1: not planar), by growing over similar neighbours.
 
-
-def fit_planes(points: np.ndarray, group: np.ndarray, num_groups: int) -> tuple[np.ndarray, ...]:
-    """Returns (counts (G,), centroids (G, 3), normals (G, 3), curvature (G,)) of points grouped by (P,) ids.
-
-    Groups with fewer than 3 points get curvature inf. Curvature is the surface variation
-    lambda_0 / (lambda_0 + lambda_1 + lambda_2) of the group's covariance (0 on a perfect plane).
+    ``centroids`` (V, 3), ``normals`` (V, 3), ``curvature`` (V,) are the voxels' plane fits (``fit_planes``).
     """
-    counts = np.bincount(group, minlength=num_groups).astype(np.float64)
-    safe = np.maximum(counts, 1.0)[:, None]
-    centroids = np.stack([np.bincount(group, points[:, i], num_groups) for i in range(3)], axis=1) / safe
-    d = points - centroids[group]  # centred first: sums of squares stay exact far from the origin
-    cov = np.empty((num_groups, 3, 3))
-    for i, j in itertools.combinations_with_replacement(range(3), 2):
-        cov[:, i, j] = cov[:, j, i] = np.bincount(group, d[:, i] * d[:, j], num_groups) / safe[:, 0]
-    normals = np.zeros((num_groups, 3))
-    curvature = np.full(num_groups, np.inf)
-    fit = counts >= 3  # most voxels of a sparse scan hold one or two points: no eigen-solve for those
-    eigval, eigvec = np.linalg.eigh(cov[fit])
-    normals[fit] = eigvec[:, :, 0]
-    curvature[fit] = eigval[:, 0] / np.maximum(eigval.sum(axis=1), 1e-300)
-    return counts.astype(np.int64), centroids, normals, curvature
-
-
-def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
-    """Returns the occupied voxels of (P, 3) local points with their plane fits and forward neighbours."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 3  # room for the +1 offsets
-    flat = np.ravel_multi_index((keys + 1).T, dims)
-    uniq, of_point = np.unique(flat, return_inverse=True)
-    of_point = of_point.ravel()
-    neighbors = np.full((len(uniq), len(_OFFSETS)), -1, dtype=np.int64)
-    vox = np.stack(np.unravel_index(uniq, dims), axis=1)
-    for k, offset in enumerate(_OFFSETS):
-        target = np.ravel_multi_index((vox + offset).T, dims)
-        pos = np.minimum(np.searchsorted(uniq, target), len(uniq) - 1)
-        neighbors[:, k] = np.where(uniq[pos] == target, pos, -1)
-    counts, centroids, normals, curvature = fit_planes(points, of_point, len(uniq))
-    return Voxels(vox - 1, of_point, neighbors, counts, centroids, normals, curvature, voxel_m)
-
-
-def _edges(voxels: Voxels) -> tuple[np.ndarray, np.ndarray]:
-    """Returns the (E,) index pairs of 26-adjacent voxels."""
-    a = np.repeat(np.arange(len(voxels.keys)), voxels.neighbors.shape[1])
-    b = voxels.neighbors.ravel()
-    keep = b >= 0
-    return a[keep], b[keep]
-
-
-def _components(num: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(num, num))
-    return connected_components(graph, directed=False)[1]
-
-
-def grow_regions(voxels: Voxels, config: Lines3DConfig) -> np.ndarray:
-    """Returns (V,) int64 region label of each voxel (-1: not planar), by growing over similar neighbours."""
-    planar = (voxels.counts >= config.min_voxel_points) & (voxels.curvature <= config.max_curvature)
-    a, b = _edges(voxels)
-    a, b = a[planar[a] & planar[b]], b[planar[a] & planar[b]]
-    n, c = voxels.normals, voxels.centroids
+    planar = (voxels.counts >= config.min_voxel_points) & (curvature <= config.max_curvature)
+    a, b = adjacent_pairs(voxels, planar)
+    n, c = normals, centroids
     cos_thr = np.cos(np.radians(config.angle_deg))
     delta = c[b] - c[a]
     ok = np.abs(np.einsum("ij,ij->i", n[a], n[b])) >= cos_thr
     ok &= np.abs(np.einsum("ij,ij->i", n[a], delta)) <= config.distance_m
     ok &= np.abs(np.einsum("ij,ij->i", n[b], delta)) <= config.distance_m
-    comp = _components(len(voxels.keys), a[ok], b[ok])
-    comp[~planar] = -1
-    return comp
+    # components of the planar voxels only (a sparse scan's voxels are mostly not planar)
+    index = np.flatnonzero(planar)
+    local = np.full(len(planar), -1, dtype=np.int64)
+    local[index] = np.arange(len(index))
+    out = np.full(len(planar), -1, dtype=np.int64)
+    out[index] = _components(len(index), local[a[ok]], local[b[ok]])
+    return out
+
+
+def _components(num: int, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Returns (num,) int64 connected component of each node of the undirected graph of edges (a, b)."""
+    graph = coo_matrix((np.ones(len(a), dtype=np.int8), (a, b)), shape=(num, num))
+    return connected_components(graph, directed=False)[1].astype(np.int64)
 
 
 def _relabel(labels: np.ndarray, min_count: int) -> np.ndarray:
@@ -149,19 +85,17 @@ def _relabel(labels: np.ndarray, min_count: int) -> np.ndarray:
 
 def _touching(voxels: Voxels, point_labels: np.ndarray) -> np.ndarray:
     """Returns (Q, 3) int64 (region a < region b, count) of regions sharing a voxel or adjacent voxels."""
-    labelled = point_labels >= 0
-    num = int(point_labels.max()) + 1 if labelled.any() else 1
-    vl = np.unique(voxels.of_point[labelled] * num + point_labels[labelled])  # sorted (voxel, label)
-    voxel, label = vl // num, vl % num
+    voxel, label, votes = _voxel_labels(voxels.of_point, point_labels)
     same = voxel[:-1] == voxel[1:]  # one voxel holding two regions: a crease voxel
     pairs = [np.stack([label[:-1][same], label[1:][same]], axis=1)]
     # the majority region of each voxel, then 26-adjacent voxels with different majorities
-    major = _majority(voxels.of_point, point_labels, len(voxels.keys))
-    a, b = _edges(voxels)
+    major = _majority(voxel, label, votes, len(voxels.flat))
+    a, b = adjacent_pairs(voxels, major >= 0)
     pairs.append(np.stack([major[a], major[b]], axis=1))
     pairs_all = np.concatenate(pairs)
-    pairs_all = pairs_all[(pairs_all >= 0).all(axis=1) & (pairs_all[:, 0] != pairs_all[:, 1])]
+    pairs_all = pairs_all[pairs_all[:, 0] != pairs_all[:, 1]]
     pairs_all.sort(axis=1)
+    num = int(point_labels.max()) + 1 if len(pairs_all) else 1
     uniq, count = np.unique(pairs_all[:, 0] * num + pairs_all[:, 1], return_counts=True)
     return np.stack([uniq // num, uniq % num, count], axis=1)
 
@@ -186,36 +120,47 @@ def _merge_coplanar(
     return out
 
 
-def _assign_points(points: np.ndarray, voxels: Voxels, voxel_labels: np.ndarray, config: Lines3DConfig):
+def _assign_points(
+    points: np.ndarray, voxels: Voxels, voxel_labels: np.ndarray, config: Lines3DConfig
+) -> np.ndarray:
     """Returns (P,) labels: each point joins the nearest plane (within distance_m) among the regions of its
-    own and its 26 neighbouring voxels; planes are fitted on the points of each region's planar voxels."""
+    own and its 26 neighbouring voxels; planes are fitted on the points of each region's planar voxels.
+    Ties go to the lower label."""
     num = int(voxel_labels.max()) + 1
     seed = voxel_labels[voxels.of_point]
     _, cen, nrm, _ = fit_planes(points[seed >= 0], seed[seed >= 0], num)
-    # both directions of the 13 forward offsets give the full 26-neighbourhood
-    back = np.full_like(voxels.neighbors, -1)
-    rows, cols = np.nonzero(voxels.neighbors >= 0)
-    back[voxels.neighbors[rows, cols], cols] = rows
-    around = np.concatenate([np.arange(len(voxels.keys))[:, None], voxels.neighbors, back], axis=1)
-    cand_of_voxel = np.where(around >= 0, voxel_labels[np.maximum(around, 0)], -1)
-    # the distinct candidate regions of each voxel: most voxels have one, crease voxels a few
-    cand = np.sort(cand_of_voxel, axis=1)
-    first = cand >= 0
-    first[:, 1:] &= cand[:, 1:] != cand[:, :-1]
-    rank = np.cumsum(first, axis=1) - 1
-    labels = np.full(len(points), -1, dtype=np.int64)
-    best = np.full(len(points), np.inf)
-    for j in range(int(first.sum(axis=1).max(initial=0))):
-        row, col = np.nonzero(first & (rank == j))
-        label_j = np.full(len(cand), -1, dtype=np.int64)
-        label_j[row] = cand[row, col]
-        c = label_j[voxels.of_point]
-        idx = np.flatnonzero(c >= 0)
-        c = c[idx]
-        dist = np.abs(np.einsum("ij,ij->i", points[idx] - cen[c], nrm[c]))
-        better = (dist < best[idx]) & (dist <= config.distance_m)
-        labels[idx[better]], best[idx[better]] = c[better], dist[better]
-    return labels
+    # every region is a candidate in the 27 voxels around each of its voxels: (voxel, region) pairs sorted
+    region_voxels = np.flatnonzero(voxel_labels >= 0)
+    around = neighbors(voxels, region_voxels, AROUND)
+    has = around >= 0
+    cand = np.unique(around[has] * num + np.repeat(voxel_labels[region_voxels], has.sum(axis=1)))
+    cand_voxel, cand_label = cand // num, cand % num
+    start = np.searchsorted(cand_voxel, np.arange(len(voxels.flat) + 1))
+    # one row per (point, candidate region): most points have one candidate, crease points a few
+    per_point = np.diff(start)[voxels.of_point]
+    point = np.repeat(np.arange(len(points)), per_point)
+    first = np.cumsum(per_point) - per_point  # row of each point's first candidate
+    c = cand_label[start[voxels.of_point[point]] + np.arange(len(point)) - first[point]]
+    dist = np.abs(np.einsum("ij,ij->i", points[point] - cen[c], nrm[c]))
+    dist[dist > config.distance_m] = np.inf
+    return _first_minimum(point, c, dist, len(points))
+
+
+def _first_minimum(group: np.ndarray, value: np.ndarray, key: np.ndarray, num: int) -> np.ndarray:
+    """Returns (num,) int64 the ``value`` of the first row of smallest finite ``key`` of each group (-1: none);
+    rows (N,) are sorted by ``group``."""
+    finite = np.isfinite(key)
+    group, value, key = group[finite], value[finite], key[finite]
+    out = np.full(num, -1, dtype=np.int64)
+    if len(group) == 0:
+        return out
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    best = np.minimum.reduceat(key, starts)
+    is_best = key == np.repeat(best, np.diff(np.r_[starts, len(key)]))
+    rows = np.flatnonzero(is_best)
+    rows = rows[np.r_[True, group[rows][1:] != group[rows][:-1]]]
+    out[group[rows]] = value[rows]
+    return out
 
 
 def segment_planes(
@@ -258,7 +203,8 @@ def segment_planes(
 def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
     """Returns (P,) int64 labels of the regions grown with voxels of config.voxel_m (-1: none)."""
     voxels = build_voxels(points, config.voxel_m)
-    voxel_labels = _relabel(grow_regions(voxels, config), 1)
+    _, cen, nrm, curv = fit_planes(points, voxels.of_point, len(voxels.flat), config.min_voxel_points)
+    voxel_labels = _relabel(grow_regions(voxels, cen, nrm, curv, config), 1)
     if (voxel_labels < 0).all():
         return np.full(len(points), -1, dtype=np.int64)
     labels = _assign_points(points, voxels, voxel_labels, config)
@@ -293,23 +239,28 @@ def _region_spacing(points: np.ndarray, labels: np.ndarray, num: int, neighbours
         if k < 1:
             continue
         sample = member[:: max(1, len(member) // 500)]
-        dist, _ = cKDTree(member).query(sample, k=k + 1)  # the first neighbour is the point itself
+        # sliding-midpoint trees build about twice as fast; the neighbours found are the same
+        tree = cKDTree(member, balanced_tree=False, compact_nodes=False)
+        dist, _ = tree.query(sample, k=k + 1)  # the first neighbour is the point itself
         out[r] = float(np.median(dist[:, -1])) * np.sqrt(np.pi / k)
     return out
 
 
-def _majority(of_point: np.ndarray, labels: np.ndarray, num_voxels: int) -> np.ndarray:
-    """Returns (V,) int64 the most frequent label among each voxel's points (-1 for none)."""
+def _voxel_labels(of_point: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (voxel, label, votes), each (K,) int64: the distinct (voxel, label) pairs of the labelled
+    points (sorted by voxel, then label) and how many points each holds."""
     ok = labels >= 0
-    out = np.full(num_voxels, -1, dtype=np.int64)
-    if not ok.any():
-        return out
-    num = int(labels.max()) + 1
+    num = int(labels.max()) + 1 if ok.any() else 1
     keys, votes = np.unique(of_point[ok] * num + labels[ok], return_counts=True)
-    voxel = keys // num
+    return keys // num, keys % num, votes
+
+
+def _majority(voxel: np.ndarray, label: np.ndarray, votes: np.ndarray, num_voxels: int) -> np.ndarray:
+    """Returns (V,) int64 the most voted label of each voxel (-1 for none) from ``_voxel_labels``' pairs."""
+    out = np.full(num_voxels, -1, dtype=np.int64)
     order = np.lexsort((votes, voxel))  # per voxel ascending votes: the last of each run wins
-    last = np.r_[voxel[order][1:] != voxel[order][:-1], True]
-    out[voxel[order][last]] = keys[order][last] % num
+    last = np.r_[voxel[order][1:] != voxel[order][:-1], True] if len(order) else np.zeros(0, bool)
+    out[voxel[order][last]] = label[order][last]
     return out
 
 
