@@ -6,7 +6,6 @@ ones. Thresholds scale with the image diagonal so one config serves 640x480 and 
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 
@@ -17,7 +16,7 @@ from scipy.spatial import cKDTree
 from .camera import Camera
 from .config import LineDetectConfig
 from .errors import InvalidInputError
-from .geometry import segment_directions, segment_lengths
+from .geometry import segment_lengths
 
 log = logging.getLogger(__name__)
 
@@ -158,12 +157,14 @@ def merge_collinear(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig
     lie within ``merge_offset_px`` of the joint line and the gap between them along it is below ``gap_px``
     (paper: merging step). Each round joins disjoint pairs, best (smallest gap) first, so chains of
     fragments collapse in a few rounds; it stops when a round merges nothing. A round leaves no
-    mergeable pair of untouched segments behind, so later rounds only search around the new ones.
+    mergeable pair of untouched segments behind, so later rounds only test pairs with a new segment.
+    Candidate pairs are searched once: a joint segment's partners are its fragments' partners.
     """
     segments = np.asarray(lines2d, dtype=np.float64).reshape(-1, 4)
-    new = None
+    graph = candidate_pairs(segments, gap_px, config)  # (C, 2) indices into lines2d
+    row = np.arange(len(segments))  # row of segments holding each input segment
+    pairs = graph
     for _ in range(config.max_merge_rounds):
-        pairs = candidate_pairs(segments, gap_px, config, new)
         if len(pairs) == 0:
             break
         merged, ok, gap = _join(segments, pairs, config)
@@ -171,52 +172,62 @@ def merge_collinear(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig
         pick = _disjoint_best(pairs[ok], gap[ok])
         if len(pick) == 0:
             break
+        joined = pairs[ok][pick]
         used = np.zeros(len(segments), dtype=bool)
-        used[pairs[ok][pick].ravel()] = True
-        segments = np.concatenate([segments[~used], merged[ok][pick]])
-        new = np.arange(len(segments) - len(pick), len(segments))
+        used[joined.ravel()] = True
+        kept = np.flatnonzero(~used)
+        new_row = np.empty(len(segments), dtype=np.int64)
+        new_row[kept] = np.arange(len(kept))
+        new_row[joined] = len(kept) + np.arange(len(pick))[:, None]
+        segments = np.concatenate([segments[kept], merged[ok][pick]])
+        row = new_row[row]
+        pairs = _unique_pairs(row[graph], len(segments), first_new=len(kept))
     return segments
 
 
-def candidate_pairs(
-    lines2d: np.ndarray, gap_px: float, config: LineDetectConfig, among: np.ndarray | None = None
-) -> np.ndarray:
+def _unique_pairs(pairs: np.ndarray, n: int, first_new: int = 0) -> np.ndarray:
+    """Returns (C', 2) int64 distinct pairs ``i < j`` of (C, 2) ``pairs`` (indices < n), dropping ``i == j``
+    and pairs whose both indices are below ``first_new``."""
+    lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    code = np.sort((lo * n + hi)[(lo != hi) & (hi >= first_new)])
+    first = np.ones(len(code), dtype=bool)  # np.unique is 10x slower here (numpy 2.4 hashes)
+    first[1:] = code[1:] != code[:-1]
+    code = code[first]
+    return np.stack([code // n, code % n], axis=1).astype(np.int64, copy=False)
+
+
+def candidate_pairs(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig) -> np.ndarray:
     """Returns (C, 2) int64 index pairs ``i < j`` of segments that may be collinear and adjacent.
 
     A k-d tree over (angle, offset of the line from the point set's centre) finds near-collinear pairs
     in O(N log N); pairs whose extents are farther apart than ``gap_px`` are dropped. ``_join`` decides.
-    ``among``: (K,) int indices; if given, only pairs with at least one of them are returned.
+    The tolerances are loose enough that a joint segment's partners are among its fragments' partners.
     """
     if len(lines2d) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    angle_rad = math.radians(config.merge_angle_deg)
-    d = segment_directions(lines2d)
-    theta = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
-    mid = 0.5 * (lines2d[:, 0:2] + lines2d[:, 2:4])
-    centre = mid.mean(axis=0)
-    radius = float(np.linalg.norm(mid - centre, axis=1).max()) + 1.0
-    rho = -np.sin(theta) * (mid[:, 0] - centre[0]) + np.cos(theta) * (mid[:, 1] - centre[1])
+    # twice the merge angle: a fragment's direction is noisier than the joint segment's it belongs to
+    angle_rad = 2.0 * math.radians(config.merge_angle_deg)
+    x1, y1, x2, y2 = lines2d.T
+    theta = np.mod(np.arctan2(y2 - y1, x2 - x1), np.pi)
+    mx, my = 0.5 * (x1 + x2), 0.5 * (y1 + y2)
+    mx, my = mx - mx.mean(), my - my.mean()  # from the midpoints' centre
+    radius = math.sqrt(float((mx * mx + my * my).max())) + 1.0
+    rho = np.cos(theta) * my - np.sin(theta) * mx
     # offsets of two fragments of one line differ by the endpoint noise plus angle error x lever arm
     rho_tol = 2.0 * config.merge_offset_px + angle_rad * radius
     # angles wrap at pi, where the normal and so the offset flip sign: add mirrored copies
     wrap = np.flatnonzero(theta > np.pi - angle_rad)
-    keys = np.c_[np.r_[theta, theta[wrap] - np.pi] / angle_rad, np.r_[rho, -rho[wrap]] / rho_tol]
-    owner = np.r_[np.arange(len(lines2d)), wrap]
-    tree = cKDTree(keys)
-    if among is None:
-        pairs = owner[tree.query_pairs(1.0, p=np.inf, output_type="ndarray")]
-    else:
-        rows = np.flatnonzero(np.isin(owner, among))
-        hits = tree.query_ball_point(keys[rows], 1.0, p=np.inf)
-        counts = np.fromiter(map(len, hits), dtype=np.int64, count=len(hits))
-        found = np.fromiter(itertools.chain.from_iterable(hits), dtype=np.int64, count=int(counts.sum()))
-        pairs = np.c_[np.repeat(owner[rows], counts), owner[found]]
-    pairs = np.sort(pairs[pairs[:, 0] != pairs[:, 1]], axis=1).astype(np.int64)
-    code = np.unique(pairs[:, 0] * len(lines2d) + pairs[:, 1])  # mirrored copies repeat some pairs
-    pairs = np.c_[code // len(lines2d), code % len(lines2d)]
-    half = 0.5 * segment_lengths(lines2d)
-    apart = np.linalg.norm(mid[pairs[:, 0]] - mid[pairs[:, 1]], axis=1)
-    return pairs[apart <= half[pairs[:, 0]] + half[pairs[:, 1]] + gap_px]
+    keys = np.empty((len(theta) + len(wrap), 2))
+    keys[:, 0] = np.concatenate([theta, theta[wrap] - np.pi]) / angle_rad
+    keys[:, 1] = np.concatenate([rho, -rho[wrap]]) / rho_tol
+    owner = np.concatenate([np.arange(len(lines2d)), wrap])
+    found = cKDTree(keys).query_pairs(1.0, p=np.inf, output_type="ndarray")
+    i, j = _unique_pairs(owner[found], len(lines2d)).T  # mirrored copies repeat some pairs
+    # extents: the endpoints' offsets from the line add to the midpoints' distance
+    half = 0.5 * np.hypot(x2 - x1, y2 - y1)
+    reach = half[i] + half[j] + gap_px + 2.0 * config.merge_offset_px
+    close = np.hypot(mx[i] - mx[j], my[i] - my[j]) <= reach
+    return np.stack([i[close], j[close]], axis=1)
 
 
 def _join(
@@ -226,26 +237,33 @@ def _join(
 
     The joint line passes through the length-weighted centroid of both midpoints along the
     length-weighted mean direction; it spans the extreme projections of the four endpoints.
+    Written column by column: numpy reductions over a short last axis cost more than the arithmetic.
     """
-    a, b = lines2d[pairs[:, 0]], lines2d[pairs[:, 1]]
-    wa, wb = segment_lengths(a)[:, None], segment_lengths(b)[:, None]
-    da, db = segment_directions(a), segment_directions(b)
-    cos = np.einsum("ij,ij->i", da, db)
-    db = db * np.where(cos < 0, -1.0, 1.0)[:, None]
-    u = wa * da + wb * db
-    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    a, b = lines2d[pairs[:, 0]].T, lines2d[pairs[:, 1]].T  # (4, C) each
+    ax, ay, bx, by = a[2] - a[0], a[3] - a[1], b[2] - b[0], b[3] - b[1]
+    wa, wb = np.hypot(ax, ay), np.hypot(bx, by)
+    dot = ax * bx + ay * by
+    # length x unit direction is the segment's vector: their sum (polarities aligned) is the weighted mean
+    sign = np.where(dot < 0, -1.0, 1.0)
+    ux, uy = ax + sign * bx, ay + sign * by
     # keep the longer fragment's orientation (LSD's gradient polarity) for the joint segment
-    u *= np.where(np.einsum("ij,ij->i", u, np.where(wa >= wb, da, db)) < 0, -1.0, 1.0)[:, None]
-    c = (wa * (a[:, 0:2] + a[:, 2:4]) + wb * (b[:, 0:2] + b[:, 2:4])) / (2.0 * (wa + wb))
-    ends = np.concatenate([a, b], axis=1).reshape(-1, 4, 2) - c[:, None, :]
-    along = np.einsum("ikj,ij->ik", ends, u)
-    off = np.abs(ends[:, :, 0] * u[:, None, 1] - ends[:, :, 1] * u[:, None, 0]).max(axis=1)
-    lo_a, hi_a = along[:, 0:2].min(axis=1), along[:, 0:2].max(axis=1)
-    lo_b, hi_b = along[:, 2:4].min(axis=1), along[:, 2:4].max(axis=1)
+    longer = wa >= wb
+    flip = np.where(ux * np.where(longer, ax, bx) + uy * np.where(longer, ay, by) < 0, -1.0, 1.0)
+    norm = flip / np.maximum(np.hypot(ux, uy), 1e-300)
+    ux, uy = ux * norm, uy * norm
+    total = 2.0 * np.maximum(wa + wb, 1e-300)
+    cx = (wa * (a[0] + a[2]) + wb * (b[0] + b[2])) / total
+    cy = (wa * (a[1] + a[3]) + wb * (b[1] + b[3])) / total
+    ends = [(a[0], a[1]), (a[2], a[3]), (b[0], b[1]), (b[2], b[3])]
+    along = [(x - cx) * ux + (y - cy) * uy for x, y in ends]
+    off = np.maximum.reduce([np.abs((x - cx) * uy - (y - cy) * ux) for x, y in ends])
+    lo_a, hi_a = np.minimum(along[0], along[1]), np.maximum(along[0], along[1])
+    lo_b, hi_b = np.minimum(along[2], along[3]), np.maximum(along[2], along[3])
     gap = np.maximum(lo_a, lo_b) - np.minimum(hi_a, hi_b)
-    lo, hi = along.min(axis=1, keepdims=True), along.max(axis=1, keepdims=True)
-    merged = np.c_[c + lo * u, c + hi * u]
-    ok = (np.abs(cos) >= math.cos(math.radians(config.merge_angle_deg))) & (off <= config.merge_offset_px)
+    lo, hi = np.minimum(lo_a, lo_b), np.maximum(hi_a, hi_b)
+    merged = np.stack([cx + lo * ux, cy + lo * uy, cx + hi * ux, cy + hi * uy], axis=1)
+    cos_tol = math.cos(math.radians(config.merge_angle_deg))
+    ok = (np.abs(dot) >= cos_tol * wa * wb) & (off <= config.merge_offset_px)
     return merged, ok, gap
 
 
