@@ -21,7 +21,8 @@ from .config import MatchConfig, TranslationConfig
 from .directions import DirectionClusters
 from .geometry import make_cam_from_world
 from .matching import match_segments
-from .translation_pairs import Pairs, compatible_pairs, pair_matches
+from .translation_inliers import pair_matches
+from .translation_pairs import Pairs, compatible_pairs
 
 log = logging.getLogger(__name__)
 
@@ -62,7 +63,7 @@ def estimate_translation(
     input (no compatible pair, one cluster): it returns ``num_inliers = 0`` and ``t = 0``.
     """
     pairs = compatible_pairs(lines2d, lines3d, camera, R, clusters3d, config.coplanar_px)
-    if len(pairs.i) < 3:
+    if pairs.size < 3:
         return _empty()
     if config.method == "ransac":
         from .translation_ransac import ransac_candidates
@@ -92,7 +93,7 @@ def screen_translation(
     from .translation_search import search_candidates
 
     pairs = compatible_pairs(lines2d, lines3d, camera, R, clusters3d, config.coplanar_px)
-    if len(pairs.i) < 3:
+    if pairs.size < 3:
         return 0
     screen = replace(config, max_hypotheses=config.screen_max_hypotheses, num_verify=config.screen_num_verify)
     _, scores = search_candidates(lines2d, lines3d, camera, R, pairs, screen, match)

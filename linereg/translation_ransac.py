@@ -12,7 +12,8 @@ import numpy as np
 
 from .camera import Camera
 from .config import MatchConfig, TranslationConfig
-from .translation_pairs import Pairs, pair_inliers
+from .translation_inliers import pair_inliers
+from .translation_pairs import Pairs
 
 _BATCH = 64  # hypotheses scored per vectorised batch
 
@@ -34,7 +35,7 @@ def ransac_candidates(
     while drawn < config.ransac_iterations:
         size = min(_BATCH, config.ransac_iterations - drawn)
         drawn += size
-        pick = rng.integers(0, len(pairs.i), size=(size, 3))
+        pick = rng.integers(0, pairs.size, size=(size, 3))
         normal, offset = pairs.coplanarity(pick.ravel())
         A, b = normal.reshape(size, 3, 3), -offset.reshape(size, 3, 1)  # one equation per row
         ok = np.abs(np.linalg.det(A)) > 1e-3  # skip (near-)parallel planes: t undetermined

@@ -18,7 +18,8 @@ import numpy as np
 from .camera import Camera
 from .config import MatchConfig, TranslationConfig
 from .geometry import pixels_to_rays, segment_lengths
-from .translation_pairs import Pairs, pair_inliers
+from .translation_inliers import pair_inliers
+from .translation_pairs import Pairs, dot
 
 _BORDER_PX = 2.0  # a 2D endpoint this close to the image border may be clipped: no hypothesis from it
 _KEY_BITS = 20  # grid coordinates are packed into one int64 key, 20 bits each
@@ -53,6 +54,33 @@ def pair_hypotheses(
     Only 2D segments inside the image (not clipped) and at least min_length_px long seed; beyond
     max_hypotheses pairs, the likeliest whole ones are kept.
     """
+    i, j = _seed_pairs(lines2d, camera, pairs, min_length_px, max_hypotheses)
+    r1, r2 = pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])
+    # the 2x2 normal equations per 2D segment, solved once: a = alpha . D, b = beta . D (D = R (P2 - P1))
+    a11, a22, a12 = dot(r2, r2), dot(r1, r1), -dot(r1, r2)
+    det = a11 * a22 - a12 * a12  # > 0 unless the two rays coincide (a point-like segment)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        alpha = (a22[:, None] * r2 + a12[:, None] * r1) / det[:, None]
+        beta = -(a11[:, None] * r1 + a12[:, None] * r2) / det[:, None]
+    D = pairs.ends[:, 3:6] - pairs.ends[:, 0:3]
+    flat = i * len(D) + j  # one (N, M) product per segment pair beats gathering (P, 3) rows
+    a, b = (alpha @ D.T).ravel()[flat], (beta @ D.T).ravel()[flat]
+    forward = (a > 0) & (b > 0)
+    ok = np.flatnonzero(forward | ((a < 0) & (b < 0)))
+    i, j, a, b = i[ok], j[ok], np.abs(a[ok]), np.abs(b[ok])
+    # the 3D ends seen at r1 and r2 are (P1, P2) or (P2, P1): their mean is the midpoint either way
+    T = np.empty((len(i), 3))
+    for k in range(2):
+        T[:, k] = 0.5 * (b * r1[i, k] + a * r2[i, k]) - pairs.point[j, k]
+    depth = 0.5 * (a + b)  # rays have z = 1
+    T[:, 2] = depth - pairs.point[j, 2]
+    return T, depth
+
+
+def _seed_pairs(
+    lines2d: np.ndarray, camera: Camera, pairs: Pairs, min_length_px: float, max_hypotheses: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (K,) int64 ``(i, j)``: the pairs whose 2D segment may seed a hypothesis (pair order)."""
     lo, hi = _BORDER_PX, np.array([camera.width, camera.height]) - 1.0 - _BORDER_PX
     inside = np.all((lines2d[:, 0:2] > lo) & (lines2d[:, 0:2] < hi), axis=1)
     inside &= np.all((lines2d[:, 2:4] > lo) & (lines2d[:, 2:4] < hi), axis=1)
@@ -60,28 +88,11 @@ def pair_hypotheses(
     usable = inside & (lengths >= min_length_px)
     # on large maps only the likeliest whole segments seed, up to a budget: those whose both ends meet
     # another segment's end (a corner: not a fragment), then one end, then none; longest first within
-    per_segment = np.bincount(pairs.i, minlength=len(lines2d)) * usable
+    per_segment = np.bincount(pairs.combo_i, pairs.counts(), minlength=len(lines2d)).astype(np.int64) * usable
     rank = np.lexsort((-lengths, -_corner_ends(lines2d, _CORNER_PX)))
     usable[rank[np.cumsum(per_segment[rank]) > max_hypotheses]] = False
-    keep = np.flatnonzero(usable[pairs.i])
-    i, j = pairs.i[keep], pairs.j[keep]
-    r1, r2 = pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])
-    a11, a22 = np.einsum("nk,nk->n", r2, r2)[i], np.einsum("nk,nk->n", r1, r1)[i]
-    a12 = -np.einsum("nk,nk->n", r1, r2)[i]
-    D = pairs.ends[:, 3:6] - pairs.ends[:, 0:3]
-    b1, b2 = np.einsum("pk,pk->p", r2[i], D[j]), -np.einsum("pk,pk->p", r1[i], D[j])
-    det = a11 * a22 - a12 * a12  # > 0 unless the two rays coincide (a point-like segment)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        a = (a22 * b1 - a12 * b2) / det
-        b = (a11 * b2 - a12 * b1) / det
-    forward = (a > 0) & (b > 0)
-    ok = np.flatnonzero(forward | ((a < 0) & (b < 0)))
-    i, j, a, b, forward = i[ok], j[ok], np.abs(a[ok]), np.abs(b[ok]), forward[ok, None]
-    P1, P2 = pairs.ends[j, 0:3], pairs.ends[j, 3:6]
-    near, far = np.where(forward, P1, P2), np.where(forward, P2, P1)  # the 3D ends seen at r1 and r2
-    T = 0.5 * (b[:, None] * r1[i] - near + a[:, None] * r2[i] - far)
-    depth = 0.5 * (a * r2[i, 2] + b * r1[i, 2])
-    return T, depth
+    combo, j = pairs.expand(np.flatnonzero(usable[pairs.combo_i]))
+    return pairs.combo_i[combo], j
 
 
 def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction: float = 0.0) -> np.ndarray:
@@ -94,15 +105,10 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
     """
     centres = -T @ R  # camera centres -R^T t, world frame
     found, counts = [], []
-    half = 1 << (_KEY_BITS - 1)
     for shift in (0.0, 0.5):
-        g = np.clip(np.floor(centres / cell + shift), -half + 1, half - 1).astype(np.int64) + half
-        key = (g[:, 0] << (2 * _KEY_BITS)) | (g[:, 1] << _KEY_BITS) | g[:, 2]
-        _, inverse, count = np.unique(key, return_inverse=True, return_counts=True)
-        best = np.argsort(-count, kind="stable")[:top]
-        sums = np.stack([np.bincount(inverse, weights=T[:, k], minlength=len(count)) for k in range(3)], 1)
-        found.append(sums[best] / count[best, None])
-        counts.append(count[best])
+        mean, count = _fullest_cells(T, _cell_keys(centres, cell, shift), top)
+        found.append(mean)
+        counts.append(count)
     T_all, c_all = np.concatenate(found), np.concatenate(counts)
     order = np.argsort(-c_all, kind="stable")
     # weak peaks (a wrong rotation) get few rivals checked: no more than the fullest cell has votes
@@ -115,6 +121,33 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
         if not near[k, kept].any():
             kept.append(k)
     return T_all[kept[:top]]
+
+
+def _cell_keys(centres: np.ndarray, cell: float, shift: float) -> np.ndarray:
+    """Returns (H,) int64 keys of the grid cells (size cell, shifted by shift cells) of centres (H, 3)."""
+    half = 1 << (_KEY_BITS - 1)
+    g = np.clip(np.floor(centres / cell + shift), -half + 1, half - 1).astype(np.int64) + half
+    return (g[:, 0] << (2 * _KEY_BITS)) | (g[:, 1] << _KEY_BITS) | g[:, 2]
+
+
+def _fullest_cells(T: np.ndarray, key: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((K, 3) mean T, (K,) votes) of the (K <= top) fullest cells, fullest first, ties by key."""
+    sorted_key = np.sort(key)
+    first = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
+    count = np.diff(np.r_[first, len(key)])
+    if len(count) > top:  # only the top few are ranked: those at least as full as the top-th fullest
+        cand = np.flatnonzero(count >= np.partition(count, len(count) - top)[len(count) - top])
+    else:
+        cand = np.arange(len(count))
+    best = cand[np.argsort(-count[cand], kind="stable")[:top]]
+    # their members, summed in input order; the best keys ascend with best's position in cell order
+    cells = sorted_key[first[best]]
+    by_key = np.argsort(best)
+    pos = np.searchsorted(cells[by_key], key).clip(0, len(best) - 1)
+    rows = np.flatnonzero(cells[by_key][pos] == key)
+    label = by_key[pos[rows]]
+    sums = np.stack([np.bincount(label, weights=T[rows, k], minlength=len(best)) for k in range(3)], 1)
+    return sums / count[best, None], count[best]
 
 
 def _corner_ends(lines2d: np.ndarray, radius_px: float) -> np.ndarray:

@@ -13,7 +13,8 @@ from linereg.matching import match_matrix, match_segments, project_segments
 from linereg.parallel import parallel_clusters
 from linereg.synthetic import paper_scene
 from linereg.translation import estimate_translation, screen_translation
-from linereg.translation_pairs import compatible_pairs, pair_inliers, pair_matches
+from linereg.translation_inliers import pair_inliers, pair_matches
+from linereg.translation_pairs import compatible_pairs
 from linereg.translation_search import _corner_ends, pair_hypotheses
 
 MATCH = MatchConfig()
@@ -161,7 +162,7 @@ def test_bearing_prefilter_finds_the_same_inliers_as_the_plane_prefilter():
     scene, clusters = _scene(7, num_lines=150)
     R, t = scene.cam_from_world[:3, :3], scene.cam_from_world[:3, 3]
     pairs = compatible_pairs(scene.lines2d, scene.lines3d, scene.camera, R, clusters, 6.0)
-    many = dataclasses.replace(pairs, plane_ij=np.zeros((0, 3)), plane_offset=np.zeros(0))  # as on a big map
+    many = dataclasses.replace(pairs, direct=False)  # as on a big map
     T = t + np.random.default_rng(2).normal(scale=0.01, size=(4, 3))
     direct = set(
         zip(*(a.tolist() for a in pair_matches(scene.lines2d, scene.camera, pairs, T, MATCH)), strict=True)
