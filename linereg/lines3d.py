@@ -11,22 +11,20 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 
-import cv2
 import numpy as np
-from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
+from .contours import image_lines, plane_basis, region_image
 from .creases import crease_segments
+from .edge_refine import refine_edges
 from .errors import InvalidInputError
 from .planes import Planes, segment_planes, voxel_downsample
 
 logger = logging.getLogger(__name__)
 
-_MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
 _CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
 _LONE_FRACTION = 0.25  # a line off its region's dominant directions is kept if this long (of its size)
 _DOMINANT_SHARE = 0.15  # a dominant direction holds this share of a region's line length
-_MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
 
 
 def extract(
@@ -111,42 +109,18 @@ def drop_near(
     return segments[~near.any(axis=1)]
 
 
-def plane_basis(normal: np.ndarray) -> np.ndarray:
-    """Returns (2, 3) in-plane unit axes; the first follows the world axis most parallel to the plane, so
-    facades and floors are rasterised axis-aligned (straight edges become straight pixel rows)."""
-    axis = np.eye(3)[np.argmin(np.abs(normal))]
-    e1 = axis - normal * (axis @ normal)
-    e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(normal, e1)])
-
-
 def contour_segments(
     points: np.ndarray, normal: np.ndarray, centroid: np.ndarray, cell: float, config: Lines3DConfig
 ) -> np.ndarray:
     """Returns (K, 6) segments along the boundary of one planar region of (n, 3) local points."""
     basis = plane_basis(normal)
     uv = (points - centroid) @ basis.T
-    extent = np.ptp(uv, axis=0) if len(uv) else np.zeros(2)
-    cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / _MAX_RASTER_PIXELS)))
-    lo = uv.min(axis=0) - 2 * cell  # a 2-cell empty border: contours never touch the image edge
-    ij = np.floor((uv - lo) / cell).astype(np.int64)
-    image: np.ndarray = np.zeros((int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3), np.uint8)
-    image[ij[:, 1], ij[:, 0]] = 255
-    image = cv2.morphologyEx(image, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))  # sampling gaps
-    # holes and islands smaller than a square of half the shortest edge cannot hold an edge: sampling
-    min_area = max((0.5 * config.min_length_m / cell) ** 2, 4.0)
-    image = _remove_small(255 - _remove_small(255 - image, min_area), min_area)
-    contours, _ = cv2.findContours(image, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
-    min_cells = config.min_length_m / cell
-    lines2d = [
-        _straight_runs(c.reshape(-1, 2).astype(np.float64), image, min_cells, config) for c in contours
-    ]
-    lines2d_all = np.concatenate([np.zeros((0, 4)), *lines2d])
-    uv_lines = (lo + (lines2d_all.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
+    image, lo, cell = region_image(uv, cell, config)
+    lines2d = image_lines(image, config.min_length_m / cell, config)
+    uv_lines = (lo + (lines2d.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
     uv_lines = refine_edges(uv, uv_lines, 2.0 * cell)
-    uv_lines = snap_directions(
-        uv_lines[_has_parallel(uv_lines, float(extent.max()), config)], config.snap_angle_deg
-    )
+    size = float(np.ptp(uv, axis=0).max()) if len(uv) else 0.0
+    uv_lines = snap_directions(uv_lines[_has_parallel(uv_lines, size, config)], config.snap_angle_deg)
     xyz = centroid + uv_lines.reshape(-1, 2) @ basis
     return xyz.reshape(-1, 6)
 
@@ -200,143 +174,6 @@ def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
         half = 0.5 * length[members, None] * sign * direction
         out[members] = np.concatenate([mid - half, mid + half], axis=1)
     return out
-
-
-def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
-    """Returns (k', 4) boundary lines moved from the raster (cell-quantised) to where the points end.
-
-    Along the line, bins of ``band`` length: the outermost of n points spread uniformly over
-    [-band, e] lies on average (e + band) / (n + 1) inside the edge e, so e = o_max + (o_max + band) / n
-    per bin; a least-squares line through the bins' e gives offset and angle. Lines this would tilt by
-    more than 10 degrees, or with most bins off the fitted edge, are dropped. uv: (n, 2) region points in plane coordinates; lines: (k, 4).
-    """
-    if len(lines) == 0:
-        return lines
-    tree = cKDTree(uv)
-    out = lines.copy()
-    keep_line = np.ones(len(lines), dtype=bool)
-    for k, (a, b) in enumerate(lines.reshape(-1, 2, 2)):
-        length = np.linalg.norm(b - a)
-        d = (b - a) / length
-        m = np.array([-d[1], d[0]])
-        samples = a + np.outer(np.arange(0.0, length + band, band), d)
-        near = tree.query_ball_point(samples, 1.5 * band)
-        idx = np.unique(np.concatenate([np.zeros(0, np.int64), *near]).astype(np.int64))
-        t, s = (uv[idx] - a) @ d, (uv[idx] - a) @ m
-        keep = (np.abs(s) <= band) & (t >= 0.5 * band) & (t <= length - 0.5 * band)
-        t, s = t[keep], s[keep]
-        # no points along most of it: the raster's closing bridged a gap, no boundary of the surface
-        if len(s) < 10 or np.ptp(t) < 0.5 * length:
-            keep_line[k] = False
-            continue
-        outward = -np.sign(s.mean())  # the points lie on the inner side
-        fit = _edge_line(t, outward * s, band)
-        if fit is None:
-            keep_line[k] = False
-            continue
-        if fit[2] < 0.5 * (length - band) / band:  # most of the line has no straight edge behind it
-            keep_line[k] = False
-            continue
-        e_a, e_b = np.clip(fit[1] + fit[0] * np.array([0.0, length]), -band, band)
-        if abs(e_b - e_a) > length * _MAX_TILT:  # not one straight edge
-            keep_line[k] = False
-            continue
-        out[k] = np.r_[a + outward * e_a * m, b + outward * e_b * m]
-    return out[keep_line]
-
-
-def _remove_small(image: np.ndarray, min_area: float) -> np.ndarray:
-    """Returns the (H, W) uint8 binary image without its 8-connected foreground parts below min_area px."""
-    _, labels, stats, _ = cv2.connectedComponentsWithStats(image, connectivity=8)
-    keep = stats[:, cv2.CC_STAT_AREA] >= min_area
-    keep[0] = False  # background
-    return np.where(keep[labels], 255, 0).astype(np.uint8)
-
-
-def _edge_line(t: np.ndarray, o: np.ndarray, band: float) -> tuple[float, float, int] | None:
-    """Returns (slope, intercept, bins on it) of the edge e(t) behind points at (t, outward offset o):
-    bins on it are the band-long stretches whose edge estimate lies within band / 2 of the line."""
-    bins = np.floor((t - t.min()) / band).astype(np.int64)
-    count = np.bincount(bins)
-    top = np.full(len(count), -np.inf)
-    np.maximum.at(top, bins, o)
-    ok = count >= 6  # the maximum of fewer points says little
-    if ok.sum() < 2:
-        return None
-    centre = np.bincount(bins, t)[ok] / count[ok]
-    edge = top[ok] + (top[ok] + band) / count[ok]
-    weight = np.sqrt(count[ok])
-    slope, intercept = np.polyfit(centre, edge, 1, w=weight)
-    residual = np.abs(edge - (slope * centre + intercept))
-    inliers = residual <= max(2.5 * np.median(residual), 1e-9)
-    if 2 <= inliers.sum() < len(edge):  # a bin reaching into a neighbouring structure
-        slope, intercept = np.polyfit(centre[inliers], edge[inliers], 1, w=weight[inliers])
-    on_line = int((np.abs(edge - (slope * centre + intercept)) <= 0.5 * band).sum())
-    return float(slope), float(intercept), on_line
-
-
-def _straight_runs(
-    contour: np.ndarray, image: np.ndarray, min_cells: float, config: Lines3DConfig
-) -> np.ndarray:
-    """Returns (k, 4) pixel segments fitted to the straight runs of one closed (n, 2) pixel contour."""
-    if len(contour) < max(min_cells, 4):
-        return np.zeros((0, 4))
-    poly = cv2.approxPolyDP(contour.astype(np.int32)[:, None, :], config.approx_cells, True).reshape(-1, 2)
-    vertex_idx = _vertex_indices(contour, poly)
-    out = []
-    n = len(contour)
-    for a, b in zip(vertex_idx, np.roll(vertex_idx, -1), strict=True):
-        run = contour[np.arange(a, a + (b - a) % n + 1) % n]
-        chord = np.linalg.norm(run[-1] - run[0])
-        # a run much longer than its chord turns a corner: the polygon cut it, it is no edge
-        if chord < min_cells or len(run) > 1.2 * chord + 2:
-            continue
-        trim = max(2, len(run) // 10)
-        core = run[trim:-trim] if len(run) > 2 * trim + 4 else run  # corners round off: fit on the middle
-        centre, direction = _fit_line(core)
-        ends = centre + np.outer((run[[0, -1]] - centre) @ direction, direction)
-        if _is_step(image, ends[0], ends[1]):
-            out.append(ends.ravel())
-    return np.array(out).reshape(-1, 4)
-
-
-def _fit_line(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (centre (2,), unit direction (2,)) of the line through (n, 2) pixels; pixels more than a
-    pixel off the first fit (the start of the next side, when a polygon vertex misses a corner) are
-    left out of the second."""
-    keep = np.ones(len(xy), dtype=bool)
-    for _ in range(2):
-        centre = xy[keep].mean(axis=0)
-        d = xy[keep] - centre
-        sxx, syy, sxy = (d[:, 0] ** 2).sum(), (d[:, 1] ** 2).sum(), (d[:, 0] * d[:, 1]).sum()
-        angle = 0.5 * np.arctan2(2.0 * sxy, sxx - syy)  # principal axis of the 2 x 2 scatter
-        direction = np.array([np.cos(angle), np.sin(angle)])
-        residual = np.abs((xy - centre) @ np.array([-direction[1], direction[0]]))
-        if (residual <= 1.0).sum() < 3:
-            break
-        keep = residual <= 1.0
-    return centre, direction
-
-
-def _is_step(image: np.ndarray, a: np.ndarray, b: np.ndarray) -> bool:
-    """Returns whether the raster is filled on one side of pixel segment a-b and empty on the other, all
-    along it (a polygon side cutting a rounded corner or crossing a ragged patch is not an edge)."""
-    d = (b - a) / np.linalg.norm(b - a)
-    m = np.array([-d[1], d[0]])
-    along = a + np.outer(np.arange(1.0, np.linalg.norm(b - a) - 1.0), d)
-    filled = []
-    for side in (-1.5, 1.5):
-        xy = np.rint(along + side * m).astype(np.int64)
-        xy = np.clip(xy, 0, [image.shape[1] - 1, image.shape[0] - 1])
-        filled.append(np.mean(image[xy[:, 1], xy[:, 0]] > 0) if len(xy) else 0.0)
-    return bool(max(filled) >= 0.75 and min(filled) <= 0.25)
-
-
-def _vertex_indices(contour: np.ndarray, poly: np.ndarray) -> np.ndarray:
-    """Returns (k,) int64 positions in the contour of the polygon's vertices, in contour order."""
-    match = (contour[:, None, :] == poly[None, :, :]).all(axis=2)  # (n, k)
-    idx = [int(np.argmax(match[:, j])) for j in range(len(poly))]
-    return np.unique(idx)
 
 
 def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig) -> np.ndarray:
