@@ -129,26 +129,40 @@ def _assign_points(
     num = int(voxel_labels.max()) + 1
     seed = voxel_labels[voxels.of_point]
     _, cen, nrm, _ = fit_planes(points[seed >= 0], seed[seed >= 0], num)
-    # every region is a candidate in the 27 voxels around each of its voxels: (voxel, region) pairs sorted
-    region_voxels = np.flatnonzero(voxel_labels >= 0)
-    around = neighbors(voxels, region_voxels, AROUND)
-    has = around >= 0
-    cand = np.unique(around[has] * num + np.repeat(voxel_labels[region_voxels], has.sum(axis=1)))
-    cand_voxel, cand_label = cand // num, cand % num
-    start = np.searchsorted(cand_voxel, np.arange(len(voxels.flat) + 1))
+    table = _candidates(voxels, voxel_labels)
     # one row per (point, candidate region): most points have one candidate, crease points a few
-    per_point = np.diff(start)[voxels.of_point]
+    per_point = (table >= 0).sum(axis=1)[voxels.of_point]
     point = np.repeat(np.arange(len(points)), per_point)
     first = np.cumsum(per_point) - per_point  # row of each point's first candidate
-    c = cand_label[start[voxels.of_point[point]] + np.arange(len(point)) - first[point]]
+    c = table[voxels.of_point[point], np.arange(len(point)) - first[point]]
     dist = np.abs(np.einsum("ij,ij->i", points[point] - cen[c], nrm[c]))
     dist[dist > config.distance_m] = np.inf
-    return _first_minimum(point, c, dist, len(points))
+    return _nearest(point, c, dist, len(points))
 
 
-def _first_minimum(group: np.ndarray, value: np.ndarray, key: np.ndarray, num: int) -> np.ndarray:
-    """Returns (num,) int64 the ``value`` of the first row of smallest finite ``key`` of each group (-1: none);
-    rows (N,) are sorted by ``group``."""
+def _candidates(voxels: Voxels, voxel_labels: np.ndarray) -> np.ndarray:
+    """Returns (V, K) int64 the distinct regions among each voxel's 27 (itself and its 26 neighbours),
+    first columns first, padded with -1."""
+    region_voxels = np.flatnonzero(voxel_labels >= 0)
+    around = neighbors(voxels, region_voxels, AROUND)
+    target = around.ravel()
+    label = np.repeat(voxel_labels[region_voxels], around.shape[1])
+    target, label = target[target >= 0], label[target >= 0]
+    # each pass writes one of the regions a voxel receives (the last write wins) and keeps the others:
+    # as many passes as regions meet in a voxel (a few), no sort of the 27 x (region voxels) pairs
+    columns = []
+    while len(target):
+        column = np.full(len(voxels.flat), -1, dtype=np.int64)
+        column[target] = label
+        columns.append(column)
+        rest = column[target] != label
+        target, label = target[rest], label[rest]
+    return np.stack(columns, axis=1) if columns else np.full((len(voxels.flat), 1), -1, dtype=np.int64)
+
+
+def _nearest(group: np.ndarray, value: np.ndarray, key: np.ndarray, num: int) -> np.ndarray:
+    """Returns (num,) int64 the ``value`` of smallest finite ``key`` in each group, the smallest value on
+    ties (-1: none); rows (N,) are sorted by ``group``."""
     finite = np.isfinite(key)
     group, value, key = group[finite], value[finite], key[finite]
     out = np.full(num, -1, dtype=np.int64)
@@ -156,10 +170,10 @@ def _first_minimum(group: np.ndarray, value: np.ndarray, key: np.ndarray, num: i
         return out
     starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
     best = np.minimum.reduceat(key, starts)
-    is_best = key == np.repeat(best, np.diff(np.r_[starts, len(key)]))
-    rows = np.flatnonzero(is_best)
-    rows = rows[np.r_[True, group[rows][1:] != group[rows][:-1]]]
-    out[group[rows]] = value[rows]
+    rows = np.flatnonzero(key == np.repeat(best, np.diff(np.r_[starts, len(key)])))
+    group, value = group[rows], value[rows]
+    starts = np.flatnonzero(np.r_[True, group[1:] != group[:-1]])
+    out[group[starts]] = np.minimum.reduceat(value, starts)
     return out
 
 
@@ -203,7 +217,8 @@ def segment_planes(
 def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
     """Returns (P,) int64 labels of the regions grown with voxels of config.voxel_m (-1: none)."""
     voxels = build_voxels(points, config.voxel_m)
-    _, cen, nrm, curv = fit_planes(points, voxels.of_point, len(voxels.flat), config.min_voxel_points)
+    # growing compares |n_a . n_b|: the normals' signs do not matter, so the faster closed form does
+    _, cen, nrm, curv = fit_planes(points, voxels.of_point, len(voxels.flat), config.min_voxel_points, True)
     voxel_labels = _relabel(grow_regions(voxels, cen, nrm, curv, config), 1)
     if (voxel_labels < 0).all():
         return np.full(len(points), -1, dtype=np.int64)
