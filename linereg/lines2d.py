@@ -6,8 +6,11 @@ ones. Thresholds scale with the image diagonal so one config serves 640x480 and 
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
+import threading
+from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -91,7 +94,9 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
 
     LSD subsamples by ``lsd_scale`` itself, further for images above ``max_work_pixels``; below half
     size its Gaussian gets costly, so very large images are first halved by area averaging (the
-    endpoints are scaled back).
+    endpoints are scaled back). LSD is single-threaded, so the image is cut into ``lsd_threads``
+    overlapping bands detected in parallel (OpenCV releases the GIL); a segment cut at a band's edge
+    comes back as overlapping pieces that ``merge_collinear`` joins.
     """
     total = min(config.lsd_scale, math.sqrt(config.max_work_pixels / gray.size))  # of the full image
     small, scale = gray, total
@@ -99,10 +104,17 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
         half = ((small.shape[1] + 1) // 2, (small.shape[0] + 1) // 2)
         small = cv2.resize(small, half, interpolation=cv2.INTER_AREA)
         scale = total * gray.shape[1] / small.shape[1]
-    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(small)[0]
-    if found is None:
-        return np.zeros((0, 4))
-    segments = np.asarray(found, dtype=np.float64).reshape(-1, 4)  # OpenCV 4: (N, 1, 4); OpenCV 5: (N, 4)
+    bands = _bands(small.shape, _num_threads(config), overlap=math.ceil(_BAND_OVERLAP_PX / scale))
+    found: list[np.ndarray | None] = [None] * len(bands)
+
+    def run(k: int) -> None:
+        (top, bottom), (left, right) = bands[k]
+        lines = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(small[top:bottom, left:right])
+        if lines[0] is not None:  # OpenCV 4: (N, 1, 4); OpenCV 5: (N, 4)
+            found[k] = np.asarray(lines[0], dtype=np.float64).reshape(-1, 4) + np.array([left, top] * 2)
+
+    _run_parallel(run, len(bands))
+    segments = np.concatenate([f for f in found if f is not None] or [np.zeros((0, 4))])
     # OpenCV divides subsampled coordinates by the scale without the half-pixel shift of the resize,
     # which moves every edge by 0.5 / scale - 0.5 px towards the origin (0.21 px at 0.7); undo it.
     segments += 0.5 / scale - 0.5
@@ -110,6 +122,50 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
         factor = np.array([gray.shape[1] / small.shape[1], gray.shape[0] / small.shape[0]] * 2)
         segments = (segments + 0.5) * factor - 0.5
     return segments
+
+
+_BAND_OVERLAP_PX = (
+    12.0  # of LSD's subsampled image, each side: a segment's piece in it outgrows LSD's minimum
+)
+
+
+def _num_threads(config: LineDetectConfig) -> int:
+    """Returns how many bands LSD runs on: ``config.lsd_threads``, or OpenCV's thread count (at most 4)."""
+    return config.lsd_threads if config.lsd_threads > 0 else max(1, min(cv2.getNumThreads(), 4))
+
+
+def _bands(shape: tuple[int, ...], n: int, overlap: int) -> list[tuple[tuple[int, int], tuple[int, int]]]:
+    """Returns ``n`` ((top, bottom), (left, right)) bands cutting the longer side of a (H, W) image into
+    equal parts, each grown by ``overlap`` px on its inner sides; fewer if the parts would be thin."""
+    h, w = shape[:2]
+    side = max(h, w)
+    n = max(1, min(n, side // (4 * overlap + 1)))
+    cuts = np.linspace(0, side, n + 1).round().astype(int)
+    spans = [(max(int(a) - overlap, 0), min(int(b) + overlap, side)) for a, b in itertools.pairwise(cuts)]
+    return [((0, h), span) if w >= h else (span, (0, w)) for span in spans]
+
+
+def _run_parallel(run: Callable[[int], None], n: int) -> None:
+    """Calls ``run(0) .. run(n - 1)``, all but the first in threads of their own; re-raises their errors.
+
+    Fresh threads rather than a pool: a pool's idle workers do not survive a fork into worker processes.
+    """
+    errors: list[BaseException] = []
+
+    def guarded(k: int) -> None:
+        try:
+            run(k)
+        except BaseException as e:  # re-raised in the caller's thread below
+            errors.append(e)
+
+    threads = [threading.Thread(target=guarded, args=(k,), daemon=True) for k in range(1, n)]
+    for thread in threads:
+        thread.start()
+    guarded(0)
+    for thread in threads:
+        thread.join()
+    if errors:
+        raise errors[0]
 
 
 def frame_margins(gray: np.ndarray, max_frac: float = 0.02, flat_std: float = 0.5) -> np.ndarray:
@@ -199,34 +255,36 @@ def _unique_pairs(pairs: np.ndarray, n: int, first_new: int = 0) -> np.ndarray:
 def candidate_pairs(lines2d: np.ndarray, gap_px: float, config: LineDetectConfig) -> np.ndarray:
     """Returns (C, 2) int64 index pairs ``i < j`` of segments that may be collinear and adjacent.
 
-    A k-d tree over (angle, offset of the line from the point set's centre) finds near-collinear pairs
-    in O(N log N); pairs whose extents are farther apart than ``gap_px`` are dropped. ``_join`` decides.
-    The tolerances are loose enough that a joint segment's partners are among its fragments' partners.
+    Segments are cut into pieces no longer than ``2 gap_px``; a k-d tree over (angle, x, y of the piece's
+    midpoint) finds pairs of similar direction whose pieces' extents may be within ``gap_px``: every pair
+    with a gap along the joint line below ``gap_px``, and few others. ``_join`` decides. The angle
+    tolerance is twice the merge angle so that a joint segment's partners are among its fragments'.
     """
     if len(lines2d) < 2:
         return np.zeros((0, 2), dtype=np.int64)
-    # twice the merge angle: a fragment's direction is noisier than the joint segment's it belongs to
     angle_rad = 2.0 * math.radians(config.merge_angle_deg)
+    piece = 2.0 * max(gap_px, 1.0)
+    # midpoints of two pieces (half-length <= piece / 2) at most gap_px apart (plus the offsets)
+    reach = piece + gap_px + 2.0 * config.merge_offset_px
     x1, y1, x2, y2 = lines2d.T
-    theta = np.mod(np.arctan2(y2 - y1, x2 - x1), np.pi)
-    mx, my = 0.5 * (x1 + x2), 0.5 * (y1 + y2)
-    mx, my = mx - mx.mean(), my - my.mean()  # from the midpoints' centre
-    radius = math.sqrt(float((mx * mx + my * my).max())) + 1.0
-    rho = np.cos(theta) * my - np.sin(theta) * mx
-    # offsets of two fragments of one line differ by the endpoint noise plus angle error x lever arm
-    rho_tol = 2.0 * config.merge_offset_px + angle_rad * radius
-    # angles wrap at pi, where the normal and so the offset flip sign: add mirrored copies
-    wrap = np.flatnonzero(theta > np.pi - angle_rad)
-    keys = np.empty((len(theta) + len(wrap), 2))
-    keys[:, 0] = np.concatenate([theta, theta[wrap] - np.pi]) / angle_rad
-    keys[:, 1] = np.concatenate([rho, -rho[wrap]]) / rho_tol
-    owner = np.concatenate([np.arange(len(lines2d)), wrap])
+    counts = np.ceil(np.hypot(x2 - x1, y2 - y1) / piece).astype(np.int64).clip(1, None)
+    owner = np.repeat(np.arange(len(lines2d)), counts)
+    t = (np.arange(len(owner)) - np.repeat(np.cumsum(counts) - counts, counts) + 0.5) / counts[owner]
+    keys = np.empty((len(owner), 3))
+    keys[:, 0] = np.mod(np.arctan2(y2 - y1, x2 - x1), np.pi)[owner] / angle_rad
+    keys[:, 1] = (x1[owner] + t * (x2 - x1)[owner]) / reach
+    keys[:, 2] = (y1[owner] + t * (y2 - y1)[owner]) / reach
+    # angles wrap at pi: mirrored copies of the pieces near it
+    wrap = np.flatnonzero(keys[:, 0] > np.pi / angle_rad - 1.0)
+    keys = np.concatenate([keys, keys[wrap] - np.array([np.pi / angle_rad, 0.0, 0.0])])
+    owner = np.concatenate([owner, owner[wrap]])
     found = cKDTree(keys).query_pairs(1.0, p=np.inf, output_type="ndarray")
-    i, j = _unique_pairs(owner[found], len(lines2d)).T  # mirrored copies repeat some pairs
-    # extents: the endpoints' offsets from the line add to the midpoints' distance
-    half = 0.5 * np.hypot(x2 - x1, y2 - y1)
-    reach = half[i] + half[j] + gap_px + 2.0 * config.merge_offset_px
-    close = np.hypot(mx[i] - mx[j], my[i] - my[j]) <= reach
+    i, j = _unique_pairs(owner[found], len(lines2d)).T  # also drops a segment's pairs with itself
+    # whole segments: midpoints no farther apart than the half-lengths, the gap and the offsets
+    half, mx, my = 0.5 * np.hypot(x2 - x1, y2 - y1), 0.5 * (x1 + x2), 0.5 * (y1 + y2)
+    close = (
+        np.hypot(mx[i] - mx[j], my[i] - my[j]) <= half[i] + half[j] + gap_px + 2.0 * config.merge_offset_px
+    )
     return np.stack([i[close], j[close]], axis=1)
 
 
