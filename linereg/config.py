@@ -61,13 +61,7 @@ class ParallelConfig:
 
     num_clusters: int = 5  # paper: c = 5
     parallel_angle_deg: float = 1.0  # paper: 1 degree for 3D parallel lines
-    # endpoint noise (m, std) of extracted map segments: a segment of length L also gets 2*sqrt(2)*noise_m/L
-    # rad of angular slack (real clouds give short, noisy segments: kinect/kitti 0.4-0.7 m long, 2-5 deg
-    # off their direction), capped at max_angle_deg; 0 = the paper's fixed 1 degree
-    noise_m: float = 0.02
-    max_angle_deg: float = 8.0
-    # as for VDs: with the noise slack, one real direction (kitti's street) can come out as two 3-4 deg apart
-    merge_angle_deg: float = 5.0
+    merge_angle_deg: float = 3.0
     ransac_iterations: int = 100
     min_lines: int = 3
     top_k: int = 3
@@ -131,15 +125,11 @@ class TranslationConfig:
     screen_num_verify: int = 4
     finalists: int = 4
     finalist_fraction: float = 0.3  # ... and only those screened at >= this fraction of the best count
-    # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``; each
-    # candidate's runner-up too) are all refined; the best refined fit wins (``pipeline._fit_score``: 2D
-    # length the inliers explain minus ``unexplained_weight`` x the projected map length that falls where the
-    # image has no segment within ``empty_radius_fraction`` of its diagonal): a symmetric building seen from
-    # its far side explains as many segments, but it also predicts facade edges in the empty sky
-    contenders: int = 8
-    contest_fraction: float = 0.85
-    unexplained_weight: float = 1.0
-    empty_radius_fraction: float = 0.08
+    # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``) are
+    # all refined; the best refined fit wins (2D length of the inliers per pixel of RMS residual): a
+    # symmetric building seen from its far side explains as many segments before refinement, not as well after
+    contenders: int = 4
+    contest_fraction: float = 0.9
 
 
 @dataclass(frozen=True)
