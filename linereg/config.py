@@ -61,7 +61,13 @@ class ParallelConfig:
 
     num_clusters: int = 5  # paper: c = 5
     parallel_angle_deg: float = 1.0  # paper: 1 degree for 3D parallel lines
-    merge_angle_deg: float = 3.0
+    # endpoint noise (m, std) of extracted map segments: a segment of length L also gets 2*sqrt(2)*noise_m/L
+    # rad of angular slack (real clouds give short, noisy segments: kinect/kitti 0.4-0.7 m long, 2-5 deg
+    # off their direction), capped at max_angle_deg; 0 = the paper's fixed 1 degree
+    noise_m: float = 0.02
+    max_angle_deg: float = 8.0
+    # as for VDs: with the noise slack, one real direction (kitti's street) can come out as two 3-4 deg apart
+    merge_angle_deg: float = 5.0
     ransac_iterations: int = 100
     min_lines: int = 3
     top_k: int = 3

@@ -1,10 +1,14 @@
 """3D parallel clusters: multiple RANSAC on segment directions (paper section III-B, Algorithm 1 steps 3-4).
 
 A hypothesis is the direction of one sampled segment (long ones preferred); a segment supports it when
-``|d_i . d| >= cos(1 deg)`` (sign-free: a 3D line has no orientation). The best hypothesis by summed member
-length is refined, its members removed, and the search repeated ``num_clusters`` (paper: c = 5) times;
-near-duplicate directions are then merged (with their members), segments no round took are assigned to a
-direction they pass, and the clusters are sorted by support.
+the (sign-free: a 3D line has no orientation) angle between them is within the segment's tolerance: the
+paper's 1 degree, widened by the angular uncertainty ``2 sqrt(2) noise_m / length`` of a segment whose
+endpoints are off by ``noise_m`` (capped at ``max_angle_deg``) -- real clouds give short segments whose
+directions are off by degrees, which a fixed 1 degree leaves unclustered. The best hypothesis by MSAC score
+(each inlier adds its length times ``1 - angle^2 / tolerance^2``, so a precise mode beats a broad one) is
+refined, its members removed, and the search repeated ``num_clusters`` (paper: c = 5) times; near-duplicate
+directions are then merged (with their members), segments no round took are assigned to a direction they
+pass, and the clusters are sorted by support.
 
 The helpers below (scatter eigenvectors, merging, sorting, sign) are shared with ``vanishing``.
 """
@@ -33,7 +37,7 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
     lines3d = as_segments(lines3d, "lines3d", 6)
     d, lengths = _directions_and_lengths(lines3d)
     usable = lengths > 0.0
-    cos_thr = np.cos(np.radians(config.parallel_angle_deg))
+    cos_thr = np.cos(tolerance_rad(lengths, config))
     rng = np.random.default_rng(config.seed)
     left = usable.copy()  # not yet in a cluster
     # one (H, S) work buffer for all rounds: fresh large temporaries cost more in page faults than the math
@@ -47,15 +51,26 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
         if np.count_nonzero(members) < config.min_lines:
             break
         labels[members] = len(found)
-        found.append(principal_direction(d[members], lengths[members], largest=True))
+        found.append(principal_direction(d[members], lengths[members] ** 2, largest=True))
         left &= ~members
     labels, directions = merge_clusters(np.array(found).reshape(-1, 3), labels, config.merge_angle_deg)
-    directions = refit_directions(d, lengths, labels, directions, largest=True)
+    directions = refit_directions(d, lengths**2, labels, directions, largest=True)
     # segments left out by RANSAC join a merged direction they pass; merged members stay
     assigned = _assign(d, directions, cos_thr, usable)
     labels = np.where(assigned >= 0, assigned, labels)
-    directions = refit_directions(d, lengths, labels, directions, largest=True)
+    directions = refit_directions(d, lengths**2, labels, directions, largest=True)
     return sort_clusters(directions, labels, lengths, config.min_lines, config.top_k)
+
+
+def tolerance_rad(lengths: np.ndarray, config: ParallelConfig) -> np.ndarray:
+    """Returns (M,) float64 the angle (rad) within which a segment of each length is parallel to a direction:
+    ``hypot(parallel_angle_deg, 2 sqrt(2) noise_m / length)``, at most ``max(max_angle_deg, parallel_angle_deg)``.
+
+    Endpoint noise sigma tilts a segment by ~ sqrt(2) sigma / L rad (1 std); 2 std of it are allowed.
+    """
+    slack = 2.0 * np.sqrt(2.0) * config.noise_m / np.maximum(lengths, 1e-12)
+    cap = np.radians(max(config.max_angle_deg, config.parallel_angle_deg))
+    return np.minimum(np.hypot(np.radians(config.parallel_angle_deg), slack), cap)
 
 
 def _directions_and_lengths(lines3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,16 +86,18 @@ def _best_cluster(
     d: np.ndarray,
     w: np.ndarray,
     left: np.ndarray,
-    cos_thr: float,
+    cos_thr: np.ndarray,
     iterations: int,
     rng: np.random.Generator,
     work: np.ndarray,
 ) -> np.ndarray:
-    """Returns the (M,) bool members among ``left`` of the heaviest sign-free parallel set, after one refit.
+    """Returns the (M,) bool members among ``left`` of the best sign-free parallel set, after one refit.
 
-    Hypotheses (segments drawn by length) are scored on at most ``_SCORE_SAMPLE`` random segments left: a
-    cluster's share of the length is estimated to ~1.5 % from them, which is all choosing the best needs; its
-    members then come from all segments left. ``work``: float32 buffer of >= iterations * S elements.
+    cos_thr: (M,) cosine of each segment's tolerance. Hypotheses (segments drawn by length) are scored
+    (MSAC, lengths ``w``) on at most ``_SCORE_SAMPLE`` random segments left: a cluster's share of the length
+    is estimated to ~1.5 % from them, which is all choosing the best needs; its members then come from all
+    segments left. The refit weighs members by ``w^2`` (a direction's error ~ noise / length).
+    ``work``: float32 buffer of >= iterations * S elements.
     """
     idx = np.flatnonzero(left)
     hypotheses = d[idx[sample_weighted(w[idx], iterations, rng)]].astype(np.float32)
@@ -89,15 +106,19 @@ def _best_cluster(
     score = work[: iterations * len(idx)].reshape(iterations, len(idx))
     np.matmul(hypotheses, d[idx].T.astype(np.float32), out=score)  # (H, S): all hypotheses against all
     np.abs(score, out=score)
-    np.greater_equal(score, cos_thr, out=score)  # 1.0 for an inlier, 0.0 otherwise
+    # 1 - cos ~ angle^2 / 2: (1 - cos) / (1 - cos_thr) is (angle / tolerance)^2, <= 1 for an inlier
+    np.subtract(1.0, score, out=score)
+    np.divide(score, (1.0 - cos_thr[idx]).astype(np.float32), out=score)
+    np.subtract(1.0, score, out=score)
+    np.maximum(score, 0.0, out=score)
     best = hypotheses[np.argmax(score @ w[idx].astype(np.float32))].astype(np.float64)
     members = (np.abs(d @ best) >= cos_thr) & left
-    refined = principal_direction(d[members], w[members], largest=True)
+    refined = principal_direction(d[members], w[members] ** 2, largest=True)
     return (np.abs(d @ refined) >= cos_thr) & left
 
 
-def _assign(d: np.ndarray, directions: np.ndarray, cos_thr: float, usable: np.ndarray) -> np.ndarray:
-    """Returns (M,) int64 index of the most parallel direction within the threshold, else -1."""
+def _assign(d: np.ndarray, directions: np.ndarray, cos_thr: np.ndarray, usable: np.ndarray) -> np.ndarray:
+    """Returns (M,) int64 index of the most parallel direction within each segment's (M,) threshold, else -1."""
     if len(directions) == 0:
         return np.full(len(d), -1, dtype=np.int64)
     cos = d @ directions.T

@@ -14,6 +14,7 @@ Success here is a pose within ``--max-rot-deg`` and ``--max-pos-m`` of the groun
 also gives ``gt_inliers``: how many detected 2D lines match a map segment at the ground-truth pose (the
 pipeline's own inlier test) -- few means the map and the image share too little for any pose search.
 With ``--overlay``, each image gets the overlay of its estimate and one of the map at the true pose (``_gt``).
+With ``--stages``, a second table runs every stage at the true pose (``real_stages``): which one fails first.
 """
 
 from __future__ import annotations
@@ -97,8 +98,11 @@ def gt_matches(lines2d: np.ndarray, line_map: Any, camera: Any, cam_from_world: 
     return match_segments(lines2d, line_map.segments, camera, cam_from_world, MatchConfig())
 
 
-def localize_one(item: RealImage, line_map: Any, bounds: tuple[float, float]) -> tuple[dict[str, Any], Any]:
-    """Returns (record, (lines2d, Registration)) of one image: errors, success within ``bounds``, times."""
+def localize_one(
+    item: RealImage, line_map: Any, bounds: tuple[float, float], stages: bool = False
+) -> tuple[dict[str, Any], Any]:
+    """Returns (record, (lines2d, Registration)) of one image: errors, success within ``bounds``, times;
+    with ``stages``, ``record["stages"]`` holds ``real_stages.stage_record`` at the true pose."""
     from .. import io
     from ..geometry import pose_errors
     from ..lines2d import detect
@@ -126,6 +130,11 @@ def localize_one(item: RealImage, line_map: Any, bounds: tuple[float, float]) ->
     }
     if result.success and not record["success"]:
         record["reason"] = f"pose off by {rot:.1f} deg / {pos:.2f} m"
+    if stages:
+        from .real_stages import stage_record
+
+        camera = item.camera.undistorted()
+        record["stages"] = stage_record(lines2d, line_map, camera, item.cam_from_world)
     return record, (image, lines2d, result)
 
 
@@ -146,7 +155,9 @@ def build_map(cloud_path: Path) -> tuple[Any, dict[str, Any]]:
     return line_map, record
 
 
-def run_scene(folder: Path, bounds: tuple[float, float], overlay_dir: Path | None) -> dict[str, Any]:
+def run_scene(
+    folder: Path, bounds: tuple[float, float], overlay_dir: Path | None, stages: bool = False
+) -> dict[str, Any]:
     """Returns a scene's map records and image records; maps are built once per distinct cloud file."""
     items = read_scene(folder)
     maps: dict[Path, Any] = {}
@@ -161,7 +172,7 @@ def run_scene(folder: Path, bounds: tuple[float, float], overlay_dir: Path | Non
                 file=sys.stderr,
             )
         try:
-            record, (image, lines2d, result) = localize_one(item, maps[item.cloud_path], bounds)
+            record, (image, lines2d, result) = localize_one(item, maps[item.cloud_path], bounds, stages)
         except Exception as e:  # an image that crashes the pipeline is a finding, recorded with its cause
             records.append(
                 {
@@ -231,6 +242,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--overlay", action="store_true", help="also write one overlay PNG per image to --out"
     )
+    parser.add_argument(
+        "--stages", action="store_true", help="also run every stage at the true pose (which fails first)"
+    )
     parser.add_argument("--max-rot-deg", type=float, default=5.0, help="success bound on R_e (default 5)")
     parser.add_argument(
         "--max-pos-m", type=float, default=0.3, help="success bound on position (default 0.3)"
@@ -248,11 +262,17 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"{data}: no scene folder with cameras.json and cloud.ply")
     bounds = (args.max_rot_deg, args.max_pos_m)
     overlay_dir = args.out if args.overlay else None
-    scenes = [run_scene(folder, bounds, overlay_dir) for folder in folders]
+    scenes = [run_scene(folder, bounds, overlay_dir, args.stages) for folder in folders]
     records = [r for s in scenes for r in s["images"]]
     print(report.format_table([m for s in scenes for m in s["maps"]], MAP_COLUMNS))
     print()
     print(report.format_table(records, IMAGE_COLUMNS))
+    if args.stages:
+        from .real_stages import STAGE_COLUMNS
+
+        rows = [{"scene": r["scene"], "image": r["image"]} | r.get("stages", {}) for r in records]
+        print("\nat the true pose:")
+        print(report.format_table(rows, STAGE_COLUMNS))
     done = sum(r["success"] for r in records)
     print(f"localized {done}/{len(records)} within {bounds[0]:g} deg / {bounds[1]:g} m of the ground truth")
     results = {
