@@ -19,7 +19,16 @@ from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
-from .voxels import AROUND, Voxels, adjacent_pairs, build_voxels, fit_planes, neighbors, voxel_downsample
+from .voxels import (
+    AROUND,
+    Voxels,
+    adjacent_pairs,
+    build_voxels,
+    fit_planes,
+    neighbors,
+    plane_distances,
+    voxel_downsample,
+)
 
 __all__ = ["Planes", "fit_planes", "grow_regions", "segment_planes", "voxel_downsample"]
 
@@ -135,7 +144,7 @@ def _assign_points(
     point = np.repeat(np.arange(len(points)), per_point)
     first = np.cumsum(per_point) - per_point  # row of each point's first candidate
     c = table[voxels.of_point[point], np.arange(len(point)) - first[point]]
-    dist = np.abs(np.einsum("ij,ij->i", points[point] - cen[c], nrm[c]))
+    dist = plane_distances(points, point, cen, nrm, c)
     dist[dist > config.distance_m] = np.inf
     return _nearest(point, c, dist, len(points))
 
@@ -233,7 +242,7 @@ def _drop_off_plane(points: np.ndarray, labels: np.ndarray, distance_m: float) -
     _, cen, nrm, _ = fit_planes(points[ok], labels[ok], int(labels.max()) + 1)
     out = labels.copy()
     idx = np.flatnonzero(ok)
-    dist = np.abs(np.einsum("ij,ij->i", points[idx] - cen[labels[idx]], nrm[labels[idx]]))
+    dist = plane_distances(points, idx, cen, nrm, labels[idx])
     out[idx[dist > distance_m]] = -1
     return out
 

@@ -33,11 +33,16 @@ class Voxels:
 
 def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
     """Returns the occupied voxels of size ``voxel_m`` of (P, 3) float64 local points."""
-    keys = np.floor(points / voxel_m).astype(np.int64)
-    keys -= keys.min(axis=0)
-    dims = keys.max(axis=0) + 3  # room for the -1 and +1 offsets
+    # per coordinate (contiguous columns are several times faster than (P, 3) reductions); floor is
+    # monotonic, so the extremes of the keys are the keys of the extremes
+    cols = [points[:, i] for i in range(3)]
+    lo = np.array([np.floor(c.min() / voxel_m) for c in cols], dtype=np.int64)
+    dims = np.array([np.floor(c.max() / voxel_m) for c in cols], dtype=np.int64) - lo + 3  # -1, +1 room
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    flat, of_point, counts = np.unique((keys + 1) @ strides, return_inverse=True, return_counts=True)
+    flat = np.zeros(len(points), dtype=np.int64)
+    for c, low, stride in zip(cols, lo, strides, strict=True):
+        flat += (np.floor(c / voxel_m).astype(np.int64) - (low - 1)) * stride
+    flat, of_point, counts = np.unique(flat, return_inverse=True, return_counts=True)
     vox = np.stack(np.unravel_index(flat, tuple(dims)), axis=1) - 1
     return Voxels(vox, flat, strides, of_point.ravel(), counts, voxel_m)
 
@@ -76,17 +81,18 @@ def fit_planes(
     """
     counts = np.bincount(group, minlength=num_groups)
     safe = np.maximum(counts, 1).astype(np.float64)
-    sums = np.stack([np.bincount(group, points[:, i], num_groups) for i in range(3)], axis=1)
-    centroids = sums / safe[:, None]
+    cols = [np.ascontiguousarray(points[:, i]) for i in range(3)]  # contiguous: no copies in bincount
+    centroids = np.stack([np.bincount(group, c, num_groups) for c in cols], axis=1) / safe[:, None]
     # a sparse scan's voxels mostly hold one or two points: neither moments nor eigen-solves for those
     fit = counts >= max(min_points, 3)
     keep = fit[group]
-    points, group = points[keep], group[keep]
-    d = points - centroids[group]  # centred first: sums of squares stay exact far from the origin
-    fitted = np.cumsum(fit) - 1  # compact index of the fitted groups
+    group = group[keep]
+    fitted = (np.cumsum(fit) - 1)[group]  # compact index of the fitted groups
+    # centred first: sums of squares stay exact far from the origin
+    d = [c[keep] - centroids[:, i][group] for i, c in enumerate(cols)]
     cov = np.empty((int(fit.sum()), 3, 3))
     for i, j in itertools.combinations_with_replacement(range(3), 2):
-        cov[:, i, j] = cov[:, j, i] = np.bincount(fitted[group], d[:, i] * d[:, j], len(cov)) / safe[fit]
+        cov[:, i, j] = cov[:, j, i] = np.bincount(fitted, d[i] * d[j], len(cov)) / safe[fit]
     normals = np.zeros((num_groups, 3))
     curvature = np.full(num_groups, np.inf)
     smallest, normals[fit], total = _smallest_eigen(cov) if closed_form else _smallest_eigh(cov)
@@ -126,6 +132,17 @@ def _smallest_eigen(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     if not stable.all():
         smallest[~stable], vec[~stable], total[~stable] = _smallest_eigh(cov[~stable])
     return smallest, vec, total
+
+
+def plane_distances(
+    points: np.ndarray, index: np.ndarray, centroids: np.ndarray, normals: np.ndarray, plane: np.ndarray
+) -> np.ndarray:
+    """Returns (N,) float64 distances of points[index] ((P, 3), (N,) int64) to planes ``plane`` (N,) int64
+    through (R, 3) centroids with (R, 3) unit normals: |(x - c) . n|."""
+    out = np.zeros(len(index))
+    for i in range(3):  # per coordinate: 1-D gathers are about twice as fast as (N, 3) ones
+        out += (points[:, i][index] - centroids[:, i][plane]) * normals[:, i][plane]
+    return np.abs(out, out=out)
 
 
 def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
