@@ -115,7 +115,7 @@ def _merge_coplanar(
     """Returns point labels with adjacent near-coplanar regions merged (Lu et al.: region merging)."""
     num = int(labels.max()) + 1
     valid = labels >= 0
-    _, cen, nrm, _ = fit_planes(points[valid], labels[valid], num)
+    _, cen, nrm, _ = fit_planes(points, labels, num)
     pairs = _touching(voxels, labels)[:, :2]
     if len(pairs) == 0:
         return labels
@@ -135,18 +135,27 @@ def _assign_points(
     """Returns (P,) labels: each point joins the nearest plane (within distance_m) among the regions of its
     own and its 26 neighbouring voxels; planes are fitted on the points of each region's planar voxels.
     Ties go to the lower label."""
-    num = int(voxel_labels.max()) + 1
     seed = voxel_labels[voxels.of_point]
-    _, cen, nrm, _ = fit_planes(points[seed >= 0], seed[seed >= 0], num)
+    # distances are |(x - c) . n|: the normals' signs do not matter, so the faster closed form does
+    _, cen, nrm, _ = fit_planes(points, seed, int(voxel_labels.max()) + 1, closed_form=True)
     table = _candidates(voxels, voxel_labels)
-    # one row per (point, candidate region): most points have one candidate, crease points a few
     per_point = (table >= 0).sum(axis=1)[voxels.of_point]
-    point = np.repeat(np.arange(len(points)), per_point)
+    labels = np.full(len(points), -1, dtype=np.int64)
+    # most points have one candidate region: its distance decides
+    one = np.flatnonzero(per_point == 1)
+    c = table[voxels.of_point[one], 0]
+    near = plane_distances(points, one, cen, nrm, c) <= config.distance_m
+    labels[one[near]] = c[near]
+    # points in crease voxels: one row per (point, candidate region), the nearest plane wins
+    many = np.flatnonzero(per_point > 1)
+    per_point = per_point[many]
+    point = np.repeat(np.arange(len(many)), per_point)
     first = np.cumsum(per_point) - per_point  # row of each point's first candidate
-    c = table[voxels.of_point[point], np.arange(len(point)) - first[point]]
-    dist = plane_distances(points, point, cen, nrm, c)
+    c = table[voxels.of_point[many][point], np.arange(len(point)) - first[point]]
+    dist = plane_distances(points, many[point], cen, nrm, c)
     dist[dist > config.distance_m] = np.inf
-    return _nearest(point, c, dist, len(points))
+    labels[many] = _nearest(point, c, dist, len(many))
+    return labels
 
 
 def _candidates(voxels: Voxels, voxel_labels: np.ndarray) -> np.ndarray:
@@ -217,7 +226,7 @@ def segment_planes(
     if (labels < 0).all():
         return _empty_planes(len(points))
     num = int(labels.max()) + 1
-    counts, cen, nrm, _ = fit_planes(points[labels >= 0], labels[labels >= 0], num)
+    counts, cen, nrm, _ = fit_planes(points, labels, num)
     pairs = _touching(grid, labels)
     logger.debug("%d regions, %d touching pairs", num, len(pairs))
     return Planes(labels, nrm, cen, counts, pairs[:, :2], _region_spacing(points, labels, num))
@@ -239,7 +248,7 @@ def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
 def _drop_off_plane(points: np.ndarray, labels: np.ndarray, distance_m: float) -> np.ndarray:
     """Returns labels with points farther than distance_m from their region's (refitted) plane set to -1."""
     ok = labels >= 0
-    _, cen, nrm, _ = fit_planes(points[ok], labels[ok], int(labels.max()) + 1)
+    _, cen, nrm, _ = fit_planes(points, labels, int(labels.max()) + 1)
     out = labels.copy()
     idx = np.flatnonzero(ok)
     dist = plane_distances(points, idx, cen, nrm, labels[idx])

@@ -72,16 +72,19 @@ def fit_planes(
     points: np.ndarray, group: np.ndarray, num_groups: int, min_points: int = 3, closed_form: bool = False
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Returns (counts (G,) int64, centroids (G, 3), normals (G, 3), curvature (G,)) of (P, 3) points grouped
-    by (P,) int64 ids in [0, G).
+    by (P,) int64 ids in [0, G); points of negative id are left out.
 
     Curvature is the surface variation lambda_0 / (lambda_0 + lambda_1 + lambda_2) of the group's covariance
     (0 on a perfect plane). Groups with fewer than ``min_points`` (at least 3) points are not fitted: zero
     normal, curvature inf. ``closed_form`` solves the 3 x 3 eigenproblems in closed form (several times
     faster for many groups, same normals to ~1e-10 rad, but of arbitrary sign).
     """
+    cols = [np.ascontiguousarray(points[:, i]) for i in range(3)]  # contiguous: no copies in bincount
+    if len(group) and group.min() < 0:
+        valid = group >= 0
+        group, cols = group[valid], [c[valid] for c in cols]
     counts = np.bincount(group, minlength=num_groups)
     safe = np.maximum(counts, 1).astype(np.float64)
-    cols = [np.ascontiguousarray(points[:, i]) for i in range(3)]  # contiguous: no copies in bincount
     centroids = np.stack([np.bincount(group, c, num_groups) for c in cols], axis=1) / safe[:, None]
     # a sparse scan's voxels mostly hold one or two points: neither moments nor eigen-solves for those
     fit = counts >= max(min_points, 3)
