@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 
@@ -15,13 +16,16 @@ import numpy as np
 FORWARD = np.array([o for o in itertools.product((-1, 0, 1), repeat=3) if o > (0, 0, 0)], dtype=np.int64)
 # the voxel itself and its 26 neighbours
 AROUND = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.int64)
+# a grid up to this size (128 MB of int32) is tabulated: a table look-up is 5x faster than a binary search
+_MAX_TABLE_CELLS = 2**25
 
 
 @dataclass(frozen=True)
 class Voxels:
     """Occupied voxels of size ``size_m``: ``keys`` (V, 3) int64 integer coordinates (from 0), ``flat``
-    (V,) int64 sorted linear index of each in a grid padded by one voxel on every side, ``strides`` (3,)
-    int64 of that grid, ``of_point`` (P,) int64 voxel of each point, ``counts`` (V,) int64 points."""
+    (V,) int64 sorted linear index of each in a grid of ``cells`` padded by one voxel on every side,
+    ``strides`` (3,) int64 of that grid, ``of_point`` (P,) int64 voxel of each point, ``counts`` (V,) int64
+    points."""
 
     keys: np.ndarray
     flat: np.ndarray
@@ -29,6 +33,16 @@ class Voxels:
     of_point: np.ndarray
     counts: np.ndarray
     size_m: float
+    cells: int
+
+    @cached_property
+    def lookup(self) -> np.ndarray | None:
+        """(cells,) int32 voxel index of every grid cell (-1: empty), None for grids too large to tabulate."""
+        if self.cells > _MAX_TABLE_CELLS or len(self.flat) >= 2**31:
+            return None
+        table = np.full(self.cells, -1, dtype=np.int32)
+        table[self.flat] = np.arange(len(self.flat), dtype=np.int32)
+        return table
 
 
 def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
@@ -44,14 +58,16 @@ def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
         flat += (np.floor(c / voxel_m).astype(np.int64) - (low - 1)) * stride
     flat, of_point, counts = np.unique(flat, return_inverse=True, return_counts=True)
     vox = np.stack(np.unravel_index(flat, tuple(dims)), axis=1) - 1
-    return Voxels(vox, flat, strides, of_point.ravel(), counts, voxel_m)
+    return Voxels(vox, flat, strides, of_point.ravel(), counts, voxel_m, int(dims.prod()))
 
 
 def neighbors(voxels: Voxels, index: np.ndarray, offsets: np.ndarray) -> np.ndarray:
     """Returns (N, K) int64 index of the voxel at each (K, 3) offset from each voxel of ``index`` (N,),
     -1 where that voxel is empty. Offsets are -1, 0 or 1 per axis (the padding keeps them in the grid)."""
-    # one row per offset: sorted targets make the binary searches cache-friendly
+    # one row per offset: sorted targets make look-ups and binary searches cache-friendly
     target = (offsets @ voxels.strides)[:, None] + voxels.flat[index][None, :]
+    if voxels.lookup is not None:
+        return voxels.lookup[target].T.astype(np.int64)
     pos = np.minimum(np.searchsorted(voxels.flat, target), len(voxels.flat) - 1)
     return np.where(voxels.flat[pos] == target, pos, -1).T
 
