@@ -15,6 +15,8 @@ also gives ``gt_inliers``: how many detected 2D lines match a map segment at the
 pipeline's own inlier test) -- few means the map and the image share too little for any pose search.
 With ``--overlay``, each image gets the overlay of its estimate and one of the map at the true pose (``_gt``).
 With ``--stages``, a second table runs every stage at the true pose (``real_stages``): which one fails first.
+With ``--plane-directions``, the maps' direction clusters also hold the directions of their dominant planes
+(``plane_directions.map_clusters``; the planes are segmented a second time here, which costs seconds).
 """
 
 from __future__ import annotations
@@ -138,7 +140,7 @@ def localize_one(
     return record, (image, lines2d, result)
 
 
-def build_map(cloud_path: Path) -> tuple[Any, dict[str, Any]]:
+def build_map(cloud_path: Path, plane_directions: bool = False) -> tuple[Any, dict[str, Any]]:
     """Returns (LineMap, record with points, segments and build seconds) of one cloud file."""
     from .. import io
     from ..linemap import LineMap
@@ -146,6 +148,8 @@ def build_map(cloud_path: Path) -> tuple[Any, dict[str, Any]]:
     start = time.perf_counter()
     points = io.read_cloud(cloud_path)
     line_map = LineMap.build(points)
+    if plane_directions:
+        line_map = with_plane_directions(line_map, points)
     record = {
         "cloud": str(cloud_path),
         "num_points": len(points),
@@ -155,8 +159,25 @@ def build_map(cloud_path: Path) -> tuple[Any, dict[str, Any]]:
     return line_map, record
 
 
+def with_plane_directions(line_map: Any, points: np.ndarray) -> Any:
+    """Returns the LineMap with clusters from its segments and the dominant planes of (P, 3) ``points``."""
+    from ..config import Lines3DConfig
+    from ..linemap import LineMap
+    from ..plane_directions import map_clusters
+    from ..planes import segment_planes
+
+    planes = segment_planes(points - points.min(axis=0), Lines3DConfig())
+    areas = planes.counts * planes.spacing_m**2  # a region's points times the area each stands for
+    clusters = map_clusters(line_map.segments, planes.normals, areas)
+    return LineMap(line_map.segments, clusters, line_map.metadata | {"plane_directions": True})
+
+
 def run_scene(
-    folder: Path, bounds: tuple[float, float], overlay_dir: Path | None, stages: bool = False
+    folder: Path,
+    bounds: tuple[float, float],
+    overlay_dir: Path | None,
+    stages: bool = False,
+    plane_directions: bool = False,
 ) -> dict[str, Any]:
     """Returns a scene's map records and image records; maps are built once per distinct cloud file."""
     items = read_scene(folder)
@@ -164,7 +185,7 @@ def run_scene(
     map_records, records = [], []
     for item in items:
         if item.cloud_path not in maps:
-            maps[item.cloud_path], record = build_map(item.cloud_path)
+            maps[item.cloud_path], record = build_map(item.cloud_path, plane_directions)
             map_records.append(record)
             print(
                 f"{folder.name}/{item.cloud_path.name}: {record['num_points']:,} points -> "
@@ -245,6 +266,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--stages", action="store_true", help="also run every stage at the true pose (which fails first)"
     )
+    parser.add_argument(
+        "--plane-directions",
+        action="store_true",
+        help="add the directions of the maps' dominant planes to their direction clusters",
+    )
     parser.add_argument("--max-rot-deg", type=float, default=5.0, help="success bound on R_e (default 5)")
     parser.add_argument(
         "--max-pos-m", type=float, default=0.3, help="success bound on position (default 0.3)"
@@ -262,7 +288,9 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"{data}: no scene folder with cameras.json and cloud.ply")
     bounds = (args.max_rot_deg, args.max_pos_m)
     overlay_dir = args.out if args.overlay else None
-    scenes = [run_scene(folder, bounds, overlay_dir, args.stages) for folder in folders]
+    scenes = [
+        run_scene(folder, bounds, overlay_dir, args.stages, args.plane_directions) for folder in folders
+    ]
     records = [r for s in scenes for r in s["images"]]
     print(report.format_table([m for s in scenes for m in s["maps"]], MAP_COLUMNS))
     print()
@@ -279,6 +307,7 @@ def run(args: argparse.Namespace) -> int:
         "benchmark": "real",
         "data": str(data),
         "bounds": {"rotation_deg": bounds[0], "position_m": bounds[1]},
+        "plane_directions": args.plane_directions,
         "scenes": scenes,
     }
     path = report.write_json_atomic(args.out / "results.json", results)
