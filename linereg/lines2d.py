@@ -6,7 +6,6 @@ ones. Thresholds scale with the image diagonal so one config serves 640x480 and 
 
 from __future__ import annotations
 
-import itertools
 import logging
 import math
 import threading
@@ -104,17 +103,17 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
         half = ((small.shape[1] + 1) // 2, (small.shape[0] + 1) // 2)
         small = cv2.resize(small, half, interpolation=cv2.INTER_AREA)
         scale = total * gray.shape[1] / small.shape[1]
-    bands = _bands(small.shape, _num_threads(config), overlap=math.ceil(_BAND_OVERLAP_PX / scale))
-    found: list[np.ndarray | None] = [None] * len(bands)
+    axis = 1 if small.shape[1] >= small.shape[0] else 0  # cut the longer side
+    overlap = math.ceil(_BAND_OVERLAP_PX / scale)
+    n = max(1, min(_num_threads(config), small.shape[axis] // (4 * overlap + 1)))  # no thin bands
+    cuts = np.linspace(0, small.shape[axis], n + 1).round().astype(int)
+    found: list[np.ndarray] = [np.zeros((0, 4))] * n
 
     def run(k: int) -> None:
-        (top, bottom), (left, right) = bands[k]
-        lines = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(small[top:bottom, left:right])
-        if lines[0] is not None:  # OpenCV 4: (N, 1, 4); OpenCV 5: (N, 4)
-            found[k] = np.asarray(lines[0], dtype=np.float64).reshape(-1, 4) + np.array([left, top] * 2)
+        found[k] = _lsd_band(small, scale, axis, (int(cuts[k]), int(cuts[k + 1])), overlap)
 
-    _run_parallel(run, len(bands))
-    segments = np.concatenate([f for f in found if f is not None] or [np.zeros((0, 4))])
+    _run_parallel(run, n)
+    segments = np.concatenate(found)
     # OpenCV divides subsampled coordinates by the scale without the half-pixel shift of the resize,
     # which moves every edge by 0.5 / scale - 0.5 px towards the origin (0.21 px at 0.7); undo it.
     segments += 0.5 / scale - 0.5
@@ -124,9 +123,9 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
     return segments
 
 
-_BAND_OVERLAP_PX = (
-    12.0  # of LSD's subsampled image, each side: a segment's piece in it outgrows LSD's minimum
-)
+# px of LSD's subsampled image a band reaches into its neighbours: a line cut at a band's edge keeps a
+# piece longer than LSD's smallest region in each band, or lies whole in one band
+_BAND_OVERLAP_PX = 12.0
 
 
 def _num_threads(config: LineDetectConfig) -> int:
@@ -134,15 +133,24 @@ def _num_threads(config: LineDetectConfig) -> int:
     return config.lsd_threads if config.lsd_threads > 0 else max(1, min(cv2.getNumThreads(), 4))
 
 
-def _bands(shape: tuple[int, ...], n: int, overlap: int) -> list[tuple[tuple[int, int], tuple[int, int]]]:
-    """Returns ``n`` ((top, bottom), (left, right)) bands cutting the longer side of a (H, W) image into
-    equal parts, each grown by ``overlap`` px on its inner sides; fewer if the parts would be thin."""
-    h, w = shape[:2]
-    side = max(h, w)
-    n = max(1, min(n, side // (4 * overlap + 1)))
-    cuts = np.linspace(0, side, n + 1).round().astype(int)
-    spans = [(max(int(a) - overlap, 0), min(int(b) + overlap, side)) for a, b in itertools.pairwise(cuts)]
-    return [((0, h), span) if w >= h else (span, (0, w)) for span in spans]
+def _lsd_band(small: np.ndarray, scale: float, axis: int, span: tuple[int, int], overlap: int) -> np.ndarray:
+    """Returns (N, 4) float64 LSD segments (OpenCV's coordinates) of the band ``span`` (start, stop) of a
+    (H, W) uint8 image along ``axis`` (0 rows, 1 columns), detected with ``overlap`` px more each side.
+
+    Segments lying wholly in that extra margin are dropped: the neighbouring band has them well inside.
+    """
+    lo, hi = max(span[0] - overlap, 0), min(span[1] + overlap, small.shape[axis])
+    band = small[:, lo:hi] if axis == 1 else small[lo:hi]
+    found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(band)[0]
+    if found is None:
+        return np.zeros((0, 4))
+    segments = np.asarray(found, dtype=np.float64).reshape(-1, 4)  # OpenCV 4: (N, 1, 4); OpenCV 5: (N, 4)
+    cols = [0, 2] if axis == 1 else [1, 3]
+    segments[:, cols] += lo
+    along = segments[:, cols]
+    outside = (along[:, 0] < span[0]) & (along[:, 1] < span[0]) & (span[0] > 0)
+    outside |= (along[:, 0] > span[1]) & (along[:, 1] > span[1]) & (span[1] < small.shape[axis])
+    return segments[~outside]
 
 
 def _run_parallel(run: Callable[[int], None], n: int) -> None:

@@ -173,3 +173,21 @@ def test_picture_border_and_flat_frame_give_no_segments(camera, rng):
     cfg = LineDetectConfig()
     segments = np.array([[1.0, 10.0, 1.5, 300.0], [1.0, 10.0, 60.0, 300.0], [100.0, 477.5, 500.0, 478.0]])
     np.testing.assert_array_equal(along_border(segments, (480, 640), np.zeros(4), cfg), [True, False, True])
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 4])
+def test_parallel_bands_find_each_edge_once(camera, rng, threads):
+    # the top and bottom edges cross every band boundary: their pieces must be joined again
+    found = detect(polygon_image(QUAD, rng), camera, LineDetectConfig(lsd_threads=threads))
+    assert_edges_found(found, quad_edges(QUAD))
+    assert len(found) == 4
+
+
+def test_bands_keep_short_segments_near_a_cut(camera, rng):
+    img = polygon_image(QUAD, rng)
+    cv2.rectangle(img, (300, 200), (340, 230), 20, -1)  # a small box straddling the cut at x = 320
+    one = detect(img, camera, LineDetectConfig(lsd_threads=1))
+    two = detect(img, camera, LineDetectConfig(lsd_threads=2))
+    assert len(one) == len(two) == 8
+    for truth in one:  # the same segments, within a pixel
+        assert matches_of(truth, two, dist_px=1.0).sum() == 1
