@@ -95,20 +95,23 @@ def fit_planes(
     normal, curvature inf. ``closed_form`` solves the 3 x 3 eigenproblems in closed form (several times
     faster for many groups, same normals to ~1e-10 rad, but of arbitrary sign).
     """
-    cols = [np.ascontiguousarray(points[:, i]) for i in range(3)]  # contiguous: no copies in bincount
+    # contiguous columns: bincount copies strided weights
     if len(group) and group.min() < 0:
         valid = group >= 0
-        group, cols = group[valid], [c[valid] for c in cols]
+        group, cols = group[valid], [points[:, i][valid] for i in range(3)]
+    else:
+        cols = [np.ascontiguousarray(points[:, i]) for i in range(3)]
     counts = np.bincount(group, minlength=num_groups)
     safe = np.maximum(counts, 1).astype(np.float64)
     centroids = np.stack([np.bincount(group, c, num_groups) for c in cols], axis=1) / safe[:, None]
     # a sparse scan's voxels mostly hold one or two points: neither moments nor eigen-solves for those
     fit = counts >= max(min_points, 3)
-    keep = fit[group]
-    group = group[keep]
+    if not fit.all():
+        keep = fit[group]
+        group, cols = group[keep], [c[keep] for c in cols]
     fitted = (np.cumsum(fit) - 1)[group]  # compact index of the fitted groups
     # centred first: sums of squares stay exact far from the origin
-    d = [c[keep] - centroids[:, i][group] for i, c in enumerate(cols)]
+    d = [c - centroids[:, i][group] for i, c in enumerate(cols)]
     cov = np.empty((int(fit.sum()), 3, 3))
     for i, j in itertools.combinations_with_replacement(range(3), 2):
         cov[:, i, j] = cov[:, j, i] = np.bincount(fitted, d[i] * d[j], len(cov)) / safe[fit]

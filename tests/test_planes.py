@@ -116,7 +116,7 @@ def test_nearest_takes_smallest_key_then_smallest_value():
 
 
 def _box(rng, density=300.0, noise_m=0.002):
-    """Returns (P, 3) points of the ground, two walls meeting at a right angle and a roof of an 6 x 4 x 3 m
+    """Returns (P, 3) points of the ground, two walls meeting at a right angle and a roof of a 6 x 4 x 3 m
     box, and (P,) int64 the part of each point."""
     parts = []
     for origin, a, b in [
