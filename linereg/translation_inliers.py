@@ -109,11 +109,17 @@ def _near_loose(pairs: Pairs, T: np.ndarray, distance_px: float) -> tuple[np.nda
     in front (``x . bearing > 0``) and ``|x . side| <= tan(tol) x . bearing`` (tol < pi / 2).
     """
     i, j, side, bearing, turn, side_off, bear_off = pairs.loose
-    s = T @ side.T + side_off[None, :]  # (H, c)
-    b = T @ bearing.T + bear_off[None, :]
     tol = _ANGLE_SAFETY * distance_px * turn
-    ok = (b > 0) & (np.abs(s) <= np.tan(np.minimum(tol, 1.5))[None, :] * b)
+    s = T @ side.T  # (H, c), in place from here: these are the largest arrays of the search
+    s += side_off[None, :]
+    np.abs(s, out=s)
+    b = T @ bearing.T
+    b += bear_off[None, :]
     wide = np.flatnonzero(tol >= 1.5)  # a huge tolerance (a tiny focal length): the angle itself
-    ok[:, wide] = np.abs(np.arctan2(s[:, wide], b[:, wide])) <= tol[wide]
+    wide_ok = np.arctan2(s[:, wide], b[:, wide]) <= tol[wide]
+    ok = b > 0
+    b *= np.tan(np.minimum(tol, 1.5))[None, :]
+    ok &= s <= b
+    ok[:, wide] = wide_ok
     h, c = np.nonzero(ok)
     return h, i[c], j[c]

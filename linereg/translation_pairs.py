@@ -218,12 +218,22 @@ def _vanishing_compatible(
     lines2d: np.ndarray, camera: Camera, dirs: np.ndarray, tolerance_px: float
 ) -> np.ndarray:
     """Returns (N, G) bool: segment i points at the vanishing point of direction g within tolerance_px."""
-    mid = 0.5 * (lines2d[:, 0:2] + lines2d[:, 2:4])
-    vp = dirs @ camera.K.T  # (G, 3) homogeneous vanishing points (may be at infinity)
-    # line through midpoint and vanishing point: l = mid x vp; endpoint distance |l . end| / |l_xy|
-    lx = mid[:, 1:2] * vp[None, :, 2] - vp[None, :, 1]
-    ly = vp[None, :, 0] - mid[:, 0:1] * vp[None, :, 2]
-    lc = mid[:, 0:1] * vp[None, :, 1] - mid[:, 1:2] * vp[None, :, 0]
-    num = np.abs(lx * lines2d[:, 0:1] + ly * lines2d[:, 1:2] + lc)
+    mx, my = 0.5 * (lines2d[:, 0] + lines2d[:, 2]), 0.5 * (lines2d[:, 1] + lines2d[:, 3])
+    vp = (dirs @ camera.K.T).T  # (3, G) homogeneous vanishing points (may be at infinity)
+    # line through midpoint and vanishing point: l = mid x vp, linear in vp; endpoint distance |l . end| / |l_xy|
+    zero, one = np.zeros_like(mx), np.ones_like(mx)
+    lx = np.c_[zero, -one, my] @ vp
+    ly = np.c_[one, zero, -mx] @ vp
+    lc = np.c_[-my, mx, zero] @ vp
+    x1, y1 = lines2d[:, 0:1], lines2d[:, 1:2]
+    num = lx * x1
+    num += ly * y1
+    num += lc
+    np.abs(num, out=num)
     den = np.hypot(lx, ly)
-    return (num <= tolerance_px * den) & (den > 1e-9 * np.abs(lc).clip(1.0))
+    np.abs(lc, out=lc)
+    lc.clip(1.0, out=lc)
+    lc *= 1e-9
+    ok = num <= tolerance_px * den
+    ok &= den > lc
+    return ok

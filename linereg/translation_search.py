@@ -55,6 +55,8 @@ def pair_hypotheses(
     max_hypotheses pairs, the likeliest whole ones are kept.
     """
     i, j = _seed_pairs(lines2d, camera, pairs, min_length_px, max_hypotheses)
+    if len(i) == 0:
+        return np.zeros((0, 3)), np.zeros(0)
     r1, r2 = pixels_to_rays(camera, lines2d[:, 0:2]), pixels_to_rays(camera, lines2d[:, 2:4])
     # the 2x2 normal equations per 2D segment, solved once: a = alpha . D, b = beta . D (D = R (P2 - P1))
     a11, a22, a12 = dot(r2, r2), dot(r1, r1), -dot(r1, r2)
@@ -62,18 +64,21 @@ def pair_hypotheses(
     with np.errstate(divide="ignore", invalid="ignore"):
         alpha = (a22[:, None] * r2 + a12[:, None] * r1) / det[:, None]
         beta = -(a11[:, None] * r1 + a12[:, None] * r2) / det[:, None]
-    D = pairs.ends[:, 3:6] - pairs.ends[:, 0:3]
-    flat = i * len(D) + j  # one (N, M) product per segment pair beats gathering (P, 3) rows
-    a, b = (alpha @ D.T).ravel()[flat], (beta @ D.T).ravel()[flat]
+    # one product per (seeding segment, 3D segment) beats gathering (P, 3) rows; i ascends (combo order)
+    change = np.r_[True, i[1:] != i[:-1]]
+    rows = i[change]
+    D = (pairs.ends[:, 3:6] - pairs.ends[:, 0:3]).T
+    flat = (np.cumsum(change) - 1) * D.shape[1] + j
+    a, b = (alpha[rows] @ D).ravel()[flat], (beta[rows] @ D).ravel()[flat]
     forward = (a > 0) & (b > 0)
     ok = np.flatnonzero(forward | ((a < 0) & (b < 0)))
     i, j, a, b = i[ok], j[ok], np.abs(a[ok]), np.abs(b[ok])
     # the 3D ends seen at r1 and r2 are (P1, P2) or (P2, P1): their mean is the midpoint either way
     T = np.empty((len(i), 3))
     for k in range(2):
-        T[:, k] = 0.5 * (b * r1[i, k] + a * r2[i, k]) - pairs.point[j, k]
+        T[:, k] = 0.5 * (b * r1[:, k][i] + a * r2[:, k][i]) - pairs.point[:, k][j]
     depth = 0.5 * (a + b)  # rays have z = 1
-    T[:, 2] = depth - pairs.point[j, 2]
+    T[:, 2] = depth - pairs.point[:, 2][j]
     return T, depth
 
 
@@ -103,10 +108,10 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
     the fullest cell's votes are left out (a clear winner needs no rivals checked; repeated structure
     gives many full cells, and they all are), and so are cells beyond as many as the fullest has votes.
     """
-    centres = -T @ R  # camera centres -R^T t, world frame
+    scaled = (-T @ R) / cell  # camera centres -R^T t (world frame), in cells
     found, counts = [], []
     for shift in (0.0, 0.5):
-        mean, count = _fullest_cells(T, _cell_keys(centres, cell, shift), top)
+        mean, count = _fullest_cells(T, _cell_keys(scaled, shift), top)
         found.append(mean)
         counts.append(count)
     T_all, c_all = np.concatenate(found), np.concatenate(counts)
@@ -123,31 +128,59 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
     return T_all[kept[:top]]
 
 
-def _cell_keys(centres: np.ndarray, cell: float, shift: float) -> np.ndarray:
-    """Returns (H,) int64 keys of the grid cells (size cell, shifted by shift cells) of centres (H, 3)."""
+def _cell_keys(scaled: np.ndarray, shift: float) -> np.ndarray:
+    """Returns (H,) int64 keys of the grid cells (shifted by shift cells) of points (H, 3) in cell units."""
     half = 1 << (_KEY_BITS - 1)
-    g = np.clip(np.floor(centres / cell + shift), -half + 1, half - 1).astype(np.int64) + half
-    return (g[:, 0] << (2 * _KEY_BITS)) | (g[:, 1] << _KEY_BITS) | g[:, 2]
+    g = scaled + shift
+    np.floor(g, out=g)
+    np.clip(g, -half + 1, half - 1, out=g)
+    gi = g.astype(np.int64)
+    # each coordinate + half lies in [1, 2^20 - 1]: packing them is the sum of the shifted fields
+    key = gi[:, 0] << (2 * _KEY_BITS)
+    key += gi[:, 1] << _KEY_BITS
+    key += gi[:, 2]
+    key += half * ((1 << (2 * _KEY_BITS)) + (1 << _KEY_BITS) + 1)
+    return key
 
 
 def _fullest_cells(T: np.ndarray, key: np.ndarray, top: int) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((K, 3) mean T, (K,) votes) of the (K <= top) fullest cells, fullest first, ties by key."""
-    sorted_key = np.sort(key)
+    """Returns ((K, 3) mean T, (K,) votes) of the (K <= top) fullest cells, fullest first, ties by key.
+
+    Most votes are alone in their cell. A cell has at most the votes of its hash bucket, so only votes in
+    buckets with ``least`` votes are sorted; that is exact once ``top`` of their cells have ``least`` votes
+    (every cell at least as full as the top-th is then among them, wholly).
+    """
+    bits = int(np.clip(np.ceil(np.log2(max(len(key), 1))) + 1, 10, 18))
+    bucket = ((key.view(np.uint64) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits)).astype(np.intp)
+    votes = np.bincount(bucket, minlength=1 << bits)[bucket]  # Fibonacci hashing: spreads nearby keys
+    for least in (4, 2, 1):
+        rows = np.flatnonzero(votes >= least) if least > 1 else np.arange(len(key))
+        found = _ranked_cells(T, key, rows, top)
+        if least == 1 or (len(found[1]) == top and found[1][-1] >= least):
+            return found
+    raise AssertionError("unreachable")
+
+
+def _ranked_cells(
+    T: np.ndarray, key: np.ndarray, rows: np.ndarray, top: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ``_fullest_cells`` among the votes ``rows`` (ascending) only."""
+    order = rows[np.argsort(key[rows])]
+    sorted_key = key[order]
     first = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
-    count = np.diff(np.r_[first, len(key)])
+    count = np.diff(np.r_[first, len(order)])
     if len(count) > top:  # only the top few are ranked: those at least as full as the top-th fullest
         cand = np.flatnonzero(count >= np.partition(count, len(count) - top)[len(count) - top])
     else:
         cand = np.arange(len(count))
     best = cand[np.argsort(-count[cand], kind="stable")[:top]]
-    # their members, summed in input order; the best keys ascend with best's position in cell order
-    cells = sorted_key[first[best]]
-    by_key = np.argsort(best)
-    pos = np.searchsorted(cells[by_key], key).clip(0, len(best) - 1)
-    rows = np.flatnonzero(cells[by_key][pos] == key)
-    label = by_key[pos[rows]]
-    sums = np.stack([np.bincount(label, weights=T[rows, k], minlength=len(best)) for k in range(3)], 1)
-    return sums / count[best, None], count[best]
+    # their members, summed in input order (as a bincount over all votes would): sorted by (cell, row)
+    n = count[best]
+    label = np.repeat(np.arange(len(best)), n)
+    members = order[np.repeat(first[best] - np.cumsum(n) + n, n) + np.arange(len(label))]
+    members = np.sort(label * len(key) + members) % len(key)
+    sums = np.stack([np.bincount(label, weights=T[members, k], minlength=len(best)) for k in range(3)], 1)
+    return sums / n[:, None], n
 
 
 def _corner_ends(lines2d: np.ndarray, radius_px: float) -> np.ndarray:
