@@ -11,7 +11,7 @@ import numpy as np
 
 from .camera import Camera
 from .config import MatchConfig
-from .translation_pairs import Pairs
+from .translation_pairs import Pairs, take_rows
 
 _ANGLE_SAFETY = 1.5  # the bearing prefilter is widened by this (first-order tolerance, cluster spread)
 
@@ -48,11 +48,15 @@ def pair_matches(
         i, j = pairs.i[p], pairs.j[p]
     else:
         h, i, j = _near_pairs(pairs, T, match.distance_px)
-        x = pairs.point[j] + T[h]  # the same necessary plane test, on the near pairs only
-        keep = np.abs(np.einsum("pk,pk->p", pairs.plane[i], x)) <= slack * x[:, 2]
-        h, i, j = h[keep], i[keep], j[keep]
-    keep = _passes(lines2d, camera, pairs.ends[j] + np.tile(T[h], 2), i, match)
-    return h[keep], i[keep], j[keep]
+        x = take_rows(pairs.point, j) + take_rows(
+            T, h
+        )  # the same necessary plane test, on the near pairs only
+        keep = np.abs(np.einsum("pk,pk->p", take_rows(pairs.plane, i), x)) <= slack * x[:, 2]
+        k = np.flatnonzero(keep)
+        h, i, j = h.take(k), i.take(k), j.take(k)
+    keep = _passes(lines2d, camera, take_rows(pairs.ends, j) + np.tile(take_rows(T, h), 2), i, match)
+    k = np.flatnonzero(keep)
+    return h.take(k), i.take(k), j.take(k)
 
 
 def _passes(
@@ -62,7 +66,8 @@ def _passes(
     d = lines2d[:, 2:4] - lines2d[:, 0:2]
     length = np.hypot(d[:, 0], d[:, 1])
     u = d / np.maximum(length, 1e-300)[:, None]
-    ux, uy, length, x0, y0 = u[i, 0], u[i, 1], length[i], lines2d[i, 0], lines2d[i, 1]
+    ux, uy, length = u[:, 0].take(i), u[:, 1].take(i), length.take(i)
+    x0, y0 = lines2d[:, 0].take(i), lines2d[:, 1].take(i)
     close = np.ones(len(i), dtype=bool)
     along = []
     for x in (ends[:, 0:3], ends[:, 3:6]):

@@ -88,7 +88,7 @@ class Pairs:
     @cached_property
     def direct_plane(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Returns per pair (P, 3) plane[i], (P,) plane[i] . point[j] and (P,) point[j] depth (m)."""
-        plane_ij, point = self.plane[self.i], self.point[self.j]
+        plane_ij, point = take_rows(self.plane, self.i), take_rows(self.point, self.j)
         return plane_ij, np.einsum("pk,pk->p", plane_ij, point), point[:, 2]
 
     @cached_property
@@ -100,9 +100,9 @@ class Pairs:
         """
         sel = np.flatnonzero(self.combo_g >= self.num_clusters)
         j = self.members[self.starts[self.combo_g[sel]]]
-        bearing = self.combo_bearing[sel]
-        side = cross(self.directions[self.combo_g[sel]], bearing)
-        p = self.point[j]
+        bearing = take_rows(self.combo_bearing, sel)
+        side = cross(take_rows(self.directions, self.combo_g[sel]), bearing)
+        p = take_rows(self.point, j)
         return self.combo_i[sel], j, side, bearing, self.combo_turn[sel], dot(p, side), dot(p, bearing)
 
     def coplanarity(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -157,10 +157,10 @@ def _combo_frames(
     d = lines2d[:, 2:4] - lines2d[:, 0:2]
     across = np.c_[-d[:, 1], d[:, 0]] / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-300)[:, None]
     shifted = pixels_to_rays(camera, mid + across)  # the midpoint's ray, 1 px across the segment
-    a = dirs[cg]
-    normal = _unit(cross(ray[ci], a))
+    a = take_rows(dirs, cg)
+    normal = _unit(cross(take_rows(ray, ci), a))
     bearing = cross(a, normal)  # = ray - (ray . a) a, normalised: towards i's rays
-    moved = shifted[ci]
+    moved = take_rows(shifted, ci)
     moved = _unit(moved - dot(moved, a)[:, None] * a)
     turn = np.arccos(np.clip(dot(moved, bearing), -1.0, 1.0))
     return normal, bearing, turn
@@ -206,6 +206,11 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Returns (P,) row-wise dot products of (P, 3) arrays."""
     return a[:, 0] * b[:, 0] + a[:, 1] * b[:, 1] + a[:, 2] * b[:, 2]
+
+
+def take_rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """Returns a[index] for a 2D array a (np.take: several times faster than fancy indexing of rows)."""
+    return np.take(a, index, axis=0)
 
 
 def _unit(v: np.ndarray) -> np.ndarray:

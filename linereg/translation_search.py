@@ -69,16 +69,16 @@ def pair_hypotheses(
     rows = i[change]
     D = (pairs.ends[:, 3:6] - pairs.ends[:, 0:3]).T
     flat = (np.cumsum(change) - 1) * D.shape[1] + j
-    a, b = (alpha[rows] @ D).ravel()[flat], (beta[rows] @ D).ravel()[flat]
+    a, b = (alpha[rows] @ D).ravel().take(flat), (beta[rows] @ D).ravel().take(flat)
     forward = (a > 0) & (b > 0)
     ok = np.flatnonzero(forward | ((a < 0) & (b < 0)))
-    i, j, a, b = i[ok], j[ok], np.abs(a[ok]), np.abs(b[ok])
+    i, j, a, b = i.take(ok), j.take(ok), np.abs(a.take(ok)), np.abs(b.take(ok))
     # the 3D ends seen at r1 and r2 are (P1, P2) or (P2, P1): their mean is the midpoint either way
     T = np.empty((len(i), 3))
     for k in range(2):
-        T[:, k] = 0.5 * (b * r1[:, k][i] + a * r2[:, k][i]) - pairs.point[:, k][j]
+        T[:, k] = 0.5 * (b * r1[:, k].take(i) + a * r2[:, k].take(i)) - pairs.point[:, k].take(j)
     depth = 0.5 * (a + b)  # rays have z = 1
-    T[:, 2] = depth - pairs.point[:, 2][j]
+    T[:, 2] = depth - pairs.point[:, 2].take(j)
     return T, depth
 
 
@@ -179,7 +179,9 @@ def _ranked_cells(
     label = np.repeat(np.arange(len(best)), n)
     members = order[np.repeat(first[best] - np.cumsum(n) + n, n) + np.arange(len(label))]
     members = np.sort(label * len(key) + members) % len(key)
-    sums = np.stack([np.bincount(label, weights=T[members, k], minlength=len(best)) for k in range(3)], 1)
+    sums = np.stack(
+        [np.bincount(label, weights=T[:, k].take(members), minlength=len(best)) for k in range(3)], 1
+    )
     return sums / n[:, None], n
 
 
