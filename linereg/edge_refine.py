@@ -17,17 +17,27 @@ _MIN_BIN_POINTS = 6  # the maximum of fewer points says little
 _MIN_LINE_POINTS = 10
 
 
-def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
-    """Returns (k', 4) boundary lines moved from the raster (cell-quantised) to where the points end.
+def refine_edges(
+    uv: np.ndarray,
+    lines: np.ndarray,
+    band: float,
+    beside: np.ndarray | None = None,
+    fixed: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((k, 4) boundary lines moved from the raster (cell-quantised) to where the points end,
+    (k,) bool which of them are kept).
 
     Along the line, bins of ``band`` length: the outermost of n points spread uniformly over
     [-band, e] lies on average (e + band) / (n + 1) inside the edge e, so e = o_max + (o_max + band) / n
-    per bin; a weighted least-squares line through the bins' e gives offset and angle. Lines this would
-    tilt by more than 10 degrees, or with most bins off the fitted edge, are dropped.
-    uv: (n, 2) region points in plane coordinates; lines: (k, 4).
+    per bin, but not beyond the first point off the region there; a weighted least-squares line through
+    the bins' e gives offset and angle. Lines this would tilt by more than 10 degrees, or with most bins
+    off the fitted edge, are dropped.
+    uv: (n, 2) region points in plane coordinates; lines: (k, 4); beside: (q, 3) u, v, signed distance
+    from the plane of points of no region near it, or None; fixed: (k,) bool lines whose direction is
+    known (a dominant direction): only their offset is fitted.
     """
     if len(lines) == 0:
-        return lines
+        return lines, np.zeros(0, dtype=bool)
     a, b = lines[:, :2], lines[:, 2:]
     length = np.linalg.norm(b - a, axis=1)
     d = (b - a) / length[:, None]
@@ -41,15 +51,39 @@ def refine_edges(uv: np.ndarray, lines: np.ndarray, band: float) -> np.ndarray:
     count = np.bincount(line, minlength=k)
     t_lo, t_hi = _group_min(t, line, k), -_group_min(-t, line, k)
     # no points along most of it: the raster's closing bridged a gap, no boundary of the surface
-    ok = (count >= _MIN_LINE_POINTS) & (t_hi - t_lo >= 0.5 * length)
+    ok = (count >= _MIN_LINE_POINTS) & (t_hi - t_lo >= 0.5 * (length - band))
     outward = -np.sign(np.bincount(line, s, k))  # the points lie on the inner side
-    slope, intercept, on_line = _edge_lines(line, t, outward[line] * s, t_lo, band, k)
-    ok &= np.isfinite(slope) & (on_line >= 0.5 * (length - band) / band)  # a straight edge behind most
+    fixed = np.zeros(k, dtype=bool) if fixed is None else fixed
+    geometry = (a, d, m * outward[:, None], length)
+    off = _beside_pairs(beside, geometry, band)
+    o = outward[line] * s
+    # the free fit tells whether a straight edge lies behind the line (a ragged outline's chords snap
+    # onto a family direction too); lines too short for it (one bin) may still take a known direction
+    slope, intercept, on_line = _edge_lines(line, t, o, t_lo, band, np.zeros(k, dtype=bool), off)
     ends = np.clip(intercept[:, None] + slope[:, None] * np.stack([np.zeros(k), length], 1), -band, band)
-    ok &= np.abs(ends[:, 1] - ends[:, 0]) <= length * _MAX_TILT  # else not one straight edge
+    straight = (on_line >= 0.5 * (length - band) / band) & (
+        np.abs(ends[:, 1] - ends[:, 0]) <= length * _MAX_TILT
+    )
+    _, intercept0, on_line0 = _edge_lines(line, t, o, t_lo, band, fixed, off)
+    short = fixed & ~np.isfinite(slope) & (on_line0 >= 1)
+    ok &= straight | short
+    ends[fixed] = np.clip(intercept0[fixed, None], -band, band)
     shift = (outward[:, None, None] * ends[..., None]) * m[:, None, :]
-    out = np.concatenate([a + shift[:, 0], b + shift[:, 1]], axis=1)
-    return out[ok]
+    return np.concatenate([a + shift[:, 0], b + shift[:, 1]], axis=1), ok
+
+
+def _beside_pairs(beside: np.ndarray | None, geometry: tuple[np.ndarray, ...], band: float) -> np.ndarray:
+    """Returns (q, 4) line, t, outward offset, depth of the (b, 3) ``beside`` points (u, v, signed plane
+    distance) within a band of each line; geometry: (k, 2) starts, directions, outward normals, (k,)
+    lengths."""
+    a, d, out, length = geometry
+    if beside is None or len(beside) == 0:
+        return np.zeros((0, 4))
+    line, point = _near_pairs(cKDTree(beside[:, :2]), a, d, length, band)
+    rel = beside[point, :2] - a[line]
+    t, o = np.einsum("pk,pk->p", rel, d[line]), np.einsum("pk,pk->p", rel, out[line])
+    keep = (t >= 0) & (t <= length[line]) & (np.abs(o) <= band) & np.isfinite(o)
+    return np.stack([line, t, o, beside[point, 2]], axis=1)[keep]
 
 
 def _near_pairs(
@@ -75,37 +109,70 @@ def _group_min(values: np.ndarray, group: np.ndarray, num: int) -> np.ndarray:
 
 
 def _edge_lines(
-    line: np.ndarray, t: np.ndarray, o: np.ndarray, t_lo: np.ndarray, band: float, k: int
+    line: np.ndarray,
+    t: np.ndarray,
+    o: np.ndarray,
+    t_lo: np.ndarray,
+    band: float,
+    fixed: np.ndarray,
+    off: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (k,) slope, intercept (NaN: no fit) and bins on it of the edge e(t) behind each line's
     points at (t, outward offset o); bins on it are the band-long stretches whose edge estimate lies
     within band / 2 of the line. Bins whose estimate is off by more than 2.5 median residuals (a bin
-    reaching into a neighbouring structure) are left out of a second fit."""
+    reaching into a neighbouring structure) are left out of a second fit. ``fixed`` lines get slope 0."""
+    k = len(fixed)
     bins = np.floor((t - t_lo[line]) / band).astype(np.int64)
-    key, inverse = np.unique(line * (bins.max(initial=0) + 1) + bins, return_inverse=True)
+    num_bins = bins.max(initial=0) + 1
+    key, inverse = np.unique(line * num_bins + bins, return_inverse=True)
     inverse = inverse.ravel()
     owner = line[np.unique(inverse, return_index=True)[1]]
     count = np.bincount(inverse)
     top = -_group_min(-o, inverse, len(key))
     centre = np.bincount(inverse, t) / count
     edge = top + (top + band) / count
+    # a point off the region beyond its last one bounds the edge: the surface ends before the point (the
+    # other surface is behind it, seen through the gap, or meets it there)
+    first = _first_beyond(off, key, top, t_lo, num_bins, band)
+    edge = np.minimum(edge, first)
     good = count >= _MIN_BIN_POINTS
     owner, centre, edge, weight = owner[good], centre[good], edge[good], count[good].astype(np.float64)
-    slope, intercept = _weighted_fit(owner, centre, edge, weight, k)
+    slope, intercept = _weighted_fit(owner, centre, edge, weight, fixed)
     residual = np.abs(edge - (slope[owner] * centre + intercept[owner]))
     inlier = residual <= np.maximum(2.5 * _group_median(residual, owner, k)[owner], 1e-9)
     n_in, n_all = np.bincount(owner[inlier], minlength=k), np.bincount(owner, minlength=k)
     refit = (n_in >= 2) & (n_in < n_all)
-    s2, i2 = _weighted_fit(owner[inlier], centre[inlier], edge[inlier], weight[inlier], k)
+    s2, i2 = _weighted_fit(owner[inlier], centre[inlier], edge[inlier], weight[inlier], fixed)
     slope, intercept = np.where(refit, s2, slope), np.where(refit, i2, intercept)
     on = np.abs(edge - (slope[owner] * centre + intercept[owner])) <= 0.5 * band
-    slope[n_all < 2] = np.nan
+    slope[(n_all < 2) & ~fixed | (n_all < 1)] = np.nan
     return slope, intercept, np.bincount(owner[on], minlength=k)
 
 
-def _weighted_fit(group: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, k: int):
+def _first_beyond(
+    off: np.ndarray, key: np.ndarray, top: np.ndarray, t_lo: np.ndarray, num_bins: int, band: float
+) -> np.ndarray:
+    """Returns (B,) per bin (sorted ``key`` = line * num_bins + bin) the smallest outward offset of the
+    (q, 4) ``off`` points beyond the bin's outermost region point ``top`` by at most band (inf: none)."""
+    first = np.full(len(key), np.inf)
+    if len(off) == 0 or len(key) == 0:
+        return first
+    line = off[:, 0].astype(np.int64)
+    bins = np.floor((off[:, 1] - t_lo[line]) / band)
+    valid = np.isfinite(bins) & (bins >= 0) & (bins < num_bins)
+    wanted = line[valid] * num_bins + bins[valid].astype(np.int64)
+    idx = np.minimum(np.searchsorted(key, wanted), len(key) - 1)
+    o = off[valid, 2]
+    hit = (key[idx] == wanted) & (o > top[idx]) & (o <= top[idx] + band)
+    np.minimum.at(first, idx[hit], o[hit])
+    return first
+
+
+def _weighted_fit(group: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray, fixed: np.ndarray):
     """Returns (k,) slope, intercept of the weighted least-squares line y = slope x + intercept per group
-    (weights w are those of the squared residuals); NaN where a group has fewer than 2 distinct x."""
+    (weights w are those of the squared residuals; slope 0 for the (k,) ``fixed`` groups); NaN where a
+    free group has fewer than 2 distinct x."""
+    k = len(fixed)
     sw, sx, sy = (np.bincount(group, v, k) for v in (w, w * x, w * y))
     sxx, sxy = np.bincount(group, w * x * x, k), np.bincount(group, w * x * y, k)
     with np.errstate(invalid="ignore", divide="ignore"):
@@ -113,6 +180,7 @@ def _weighted_fit(group: np.ndarray, x: np.ndarray, y: np.ndarray, w: np.ndarray
         var = sxx / sw - mx * mx
         slope = (sxy / sw - mx * my) / var
         slope = np.where(var > 1e-12 * np.maximum(mx * mx, 1.0), slope, np.nan)
+        slope[fixed] = 0.0
         return slope, my - slope * mx
 
 

@@ -8,23 +8,27 @@ crease, clipped to where both regions reach it -> collinear pieces merged -> bac
 
 from __future__ import annotations
 
+import itertools
 import logging
 from collections.abc import Callable
+from typing import NamedTuple
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
 from .contours import image_lines, plane_basis, region_image
 from .creases import crease_segments
 from .edge_refine import refine_edges
 from .errors import InvalidInputError
+from .line_families import dominant_directions, has_parallel, snap_directions, snap_to_families
 from .planes import Planes, segment_planes, voxel_downsample
 
 logger = logging.getLogger(__name__)
 
+_BESIDE_DEPTH_M = 0.3  # loose points this far off a region's plane can meet it at an edge
+_BESIDE_MIN_DEPTH_M = 0.01  # ... and this far at least (range noise): closer ones are on the plane
 _CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
-_LONE_FRACTION = 0.25  # a line off its region's dominant directions is kept if this long (of its size)
-_DOMINANT_SHARE = 0.15  # a dominant direction holds this share of a region's line length
 
 
 def extract(
@@ -64,11 +68,21 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     # small patches (clutter) give fragments, not edges: about count * spacing^2 of surface each
     large = planes.counts * planes.spacing_m**2 >= config.min_region_area_m2
     creases = crease_segments(points, planes, members, large, cells, config)
+    # points of no large region: a reveal, a ledge's underside, too narrow to be regions themselves
+    loose = planes.labels < 0
+    loose[~loose] = ~large[planes.labels[~loose]]
+    loose_tree = cKDTree(points[loose]) if loose.any() else None
+    kept = np.flatnonzero(large)
+    regions = [Region(planes.normals[r], planes.centroids[r], cells[r]) for r in kept]
+    frames = [candidates(points[members[r]], reg, config) for r, reg in zip(kept, regions, strict=True)]
+    # directions from every region's candidates: a window pane's short sides take the facade's
+    raw = [to_world(f.lines, reg, f.basis) for f, reg in zip(frames, regions, strict=True)]
+    families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config.snap_angle_deg)
     contours, near_m = [np.zeros((0, 6))], [np.zeros(0)]
-    for r in np.flatnonzero(large):
-        found = contour_segments(points[members[r]], planes.normals[r], planes.centroids[r], cells[r], config)
+    for frame, region in zip(frames, regions, strict=True):
+        found = contour_segments(frame, region, families, loose_tree, config)
         contours.append(found)
-        near_m.append(np.full(len(found), 2.0 * cells[r]))
+        near_m.append(np.full(len(found), 2.0 * frame.cell))
     contour = drop_near(np.concatenate(contours), creases, np.concatenate(near_m), 10.0)
     segments = np.concatenate([creases, contour])
     # creases are exact plane intersections: they win over the (rasterised) contour along the same line
@@ -109,71 +123,79 @@ def drop_near(
     return segments[~near.any(axis=1)]
 
 
-def contour_segments(
-    points: np.ndarray, normal: np.ndarray, centroid: np.ndarray, cell: float, config: Lines3DConfig
-) -> np.ndarray:
-    """Returns (K, 6) segments along the boundary of one planar region of (n, 3) local points."""
-    basis = plane_basis(normal)
-    uv = (points - centroid) @ basis.T
-    image, lo, cell = region_image(uv, cell, config)
+class Region(NamedTuple):
+    """One planar region: unit normal (3,), centroid (3,), raster cell (m)."""
+
+    normal: np.ndarray
+    centroid: np.ndarray
+    cell: float
+
+
+class Frame(NamedTuple):
+    """A region in its plane: (2, 3) in-plane axes, (n, 2) points, (k, 4) candidate lines, raster cell."""
+
+    basis: np.ndarray
+    uv: np.ndarray
+    lines: np.ndarray
+    cell: float
+
+
+def candidates(points: np.ndarray, region: Region, config: Lines3DConfig) -> Frame:
+    """Returns the region of (n, 3) local points in its plane with the straight runs of its raster's
+    contours as candidate boundary lines."""
+    basis = plane_basis(region.normal)
+    uv = (points - region.centroid) @ basis.T
+    image, lo, cell = region_image(uv, region.cell, config)
     lines2d = image_lines(image, config.min_length_m / cell, config)
     uv_lines = (lo + (lines2d.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
-    uv_lines = refine_edges(uv, uv_lines, 2.0 * cell)
-    size = float(np.ptp(uv, axis=0).max()) if len(uv) else 0.0
-    uv_lines = snap_directions(uv_lines[_has_parallel(uv_lines, size, config)], config.snap_angle_deg)
-    xyz = centroid + uv_lines.reshape(-1, 2) @ basis
-    return xyz.reshape(-1, 6)
+    return Frame(basis, uv, uv_lines, cell)
 
 
-def _has_parallel(lines: np.ndarray, size: float, config: Lines3DConfig) -> np.ndarray:
-    """Returns (k,) bool: lines of one region that follow one of its dominant directions, i.e. whose
-    direction (within snap_angle_deg) other lines share with at least their own length and with
-    _DOMINANT_SHARE of the region's whole line length, or that are long (_LONE_FRACTION of the region's
-    ``size``, its longer side).
-
-    Man-made boundaries come in a few parallel families (both sides of a window, ledge, facade), while a
-    ragged boundary (clutter, a scanner's occlusion shadow, the edge of its sampling pattern on the
-    ground) is cut into chords in every direction, each family holding a small share.
-    """
-    if len(lines) == 0:
-        return np.zeros(0, dtype=bool)
-    d = lines[:, 2:] - lines[:, :2]
-    length = np.linalg.norm(d, axis=1)
-    theta = np.arctan2(d[:, 1], d[:, 0])
-    diff = np.abs((theta[:, None] - theta[None, :] + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
-    family = (diff <= np.radians(max(config.snap_angle_deg, 1.0))) @ length  # includes the line itself
-    dominant = (family >= 2.0 * length) & (family >= _DOMINANT_SHARE * length.sum())
-    return dominant | (length >= _LONE_FRACTION * size)
+def to_world(lines: np.ndarray, region: Region, basis: np.ndarray) -> np.ndarray:
+    """Returns (k, 6) local 3D segments of (k, 4) lines in a region's plane."""
+    return (region.centroid + lines.reshape(-1, 2) @ basis).reshape(-1, 6)
 
 
-def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
-    """Returns (k, 4) 2D lines of one region turned about their midpoints onto the region's dominant
-    directions: lines within max_angle_deg of the longest free line share its direction, averaged with
-    weights length^2 (a facade's long outline fixes the direction of its short window edges)."""
-    if max_angle_deg <= 0 or len(lines) < 2:
-        return lines
-    d = lines[:, 2:] - lines[:, :2]
-    length = np.linalg.norm(d, axis=1)
-    theta = np.arctan2(d[:, 1], d[:, 0])
-    free = np.ones(len(lines), dtype=bool)
-    out = lines.copy()
-    for seed in np.argsort(-length, kind="stable"):
-        if not free[seed]:
-            continue
-        diff = np.abs((theta - theta[seed] + 0.5 * np.pi) % np.pi - 0.5 * np.pi)  # undirected angle
-        members = np.flatnonzero(free & (diff <= np.radians(max_angle_deg)))
-        free[members] = False
-        # mean of undirected angles: average the doubled angles
-        w = length[members] ** 2
-        mean = 0.5 * np.arctan2(
-            (w * np.sin(2 * theta[members])).sum(), (w * np.cos(2 * theta[members])).sum()
-        )
-        direction = np.array([np.cos(mean), np.sin(mean)])
-        sign = np.sign(d[members] @ direction)[:, None]
-        mid = 0.5 * (lines[members, :2] + lines[members, 2:])
-        half = 0.5 * length[members, None] * sign * direction
-        out[members] = np.concatenate([mid - half, mid + half], axis=1)
-    return out
+def contour_segments(
+    frame: Frame,
+    region: Region,
+    families: tuple[np.ndarray, np.ndarray],
+    loose: cKDTree | None,
+    config: Lines3DConfig,
+) -> np.ndarray:
+    """Returns (K, 6) segments along the boundary of one planar region: candidates turned onto the global
+    direction ``families`` (``dominant_directions``), moved onto the points; ``loose`` holds the points of
+    no large region, which place edges where a narrow surface meets the region."""
+    band = 2.0 * frame.cell
+    size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
+    lines, fixed = snap_to_families(frame.lines, frame.basis, families, config.snap_angle_deg)
+    near = _beside_points(loose, region, frame.basis, lines, band)
+    lines, kept = refine_edges(frame.uv, lines, band, near, fixed)
+    # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
+    kept[kept] = has_parallel(frame.lines[kept], size, config.snap_angle_deg)
+    return to_world(snap_directions(lines[kept], config.snap_angle_deg), region, frame.basis)
+
+
+def _beside_points(
+    loose: cKDTree | None, region: Region, basis: np.ndarray, uv_lines: np.ndarray, band: float
+) -> np.ndarray:
+    """Returns (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within _BESIDE_DEPTH_M
+    of the region's plane and about a band of its (k, 4) candidate lines."""
+    if loose is None or len(uv_lines) == 0:
+        return np.zeros((0, 3))
+    ends = uv_lines.reshape(-1, 2, 2)
+    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
+    count = np.ceil(length / band).astype(np.int64) + 1
+    line = np.repeat(np.arange(len(ends)), count)
+    frac = (np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)) / (count[line] - 1)
+    uv = ends[line, 0] + frac[:, None] * (ends[line, 1] - ends[line, 0])
+    samples = region.centroid + uv @ basis
+    found = loose.query_ball_point(samples, float(np.hypot(2.0 * band, _BESIDE_DEPTH_M)), return_sorted=False)
+    idx = np.unique(np.fromiter(itertools.chain.from_iterable(found), np.int64))
+    rel = loose.data[idx] - region.centroid
+    depth = rel @ region.normal
+    keep = (np.abs(depth) <= _BESIDE_DEPTH_M) & (np.abs(depth) >= _BESIDE_MIN_DEPTH_M)
+    return np.c_[rel[keep] @ basis.T, depth[keep]]
 
 
 def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig) -> np.ndarray:
