@@ -22,12 +22,16 @@ from scipy.spatial import cKDTree
 from .config import Lines3DConfig
 from .voxels import (
     AROUND,
+    Moments,
     Voxels,
     adjacent_pairs,
     build_voxels,
+    combine_moments,
     fit_planes,
+    moments,
     neighbors,
     plane_distances,
+    plane_fits,
     voxel_downsample,
 )
 
@@ -131,14 +135,14 @@ def _merge_coplanar(
 
 
 def _assign_points(
-    points: np.ndarray, voxels: Voxels, voxel_labels: np.ndarray, config: Lines3DConfig
+    points: np.ndarray, voxels: Voxels, voxel_fits: Moments, voxel_labels: np.ndarray, config: Lines3DConfig
 ) -> np.ndarray:
     """Returns (P,) labels: each point joins the nearest plane (within distance_m) among the regions of its
-    own and its 26 neighbouring voxels; planes are fitted on the points of each region's planar voxels.
-    Ties go to the lower label."""
-    seed = voxel_labels[voxels.of_point]
+    own and its 26 neighbouring voxels; planes are fitted on the points of each region's planar voxels
+    (from the voxels' ``moments``). Ties go to the lower label."""
+    regions = combine_moments(voxel_fits, voxel_labels, int(voxel_labels.max()) + 1)
     # distances are |(x - c) . n|: the normals' signs do not matter, so the faster closed form does
-    _, cen, nrm, _ = fit_planes(points, seed, int(voxel_labels.max()) + 1, closed_form=True)
+    cen, (nrm, _) = regions.centroids, plane_fits(regions, closed_form=True)
     table = _candidates(voxels, voxel_labels)
     per_point = (table >= 0).sum(axis=1)[voxels.of_point]
     labels = np.full(len(points), -1, dtype=np.int64)
@@ -236,12 +240,13 @@ def segment_planes(
 def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
     """Returns (P,) int64 labels of the regions grown with voxels of config.voxel_m (-1: none)."""
     voxels = build_voxels(points, config.voxel_m)
+    fits = moments(points, voxels.of_point, len(voxels.flat), config.min_voxel_points)
     # growing compares |n_a . n_b|: the normals' signs do not matter, so the faster closed form does
-    _, cen, nrm, curv = fit_planes(points, voxels.of_point, len(voxels.flat), config.min_voxel_points, True)
-    voxel_labels = _relabel(grow_regions(voxels, cen, nrm, curv, config), 1)
+    nrm, curv = plane_fits(fits, closed_form=True)
+    voxel_labels = _relabel(grow_regions(voxels, fits.centroids, nrm, curv, config), 1)
     if (voxel_labels < 0).all():
         return np.full(len(points), -1, dtype=np.int64)
-    labels = _assign_points(points, voxels, voxel_labels, config)
+    labels = _assign_points(points, voxels, fits, voxel_labels, config)
     # regions too small at this scale leave their points to the next, coarser one
     return _relabel(labels, config.min_region_points)
 

@@ -84,17 +84,20 @@ def adjacent_pairs(voxels: Voxels, index: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.repeat(index, keep.sum(axis=1)), nb[keep]
 
 
-def fit_planes(
-    points: np.ndarray, group: np.ndarray, num_groups: int, min_points: int = 3, closed_form: bool = False
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (counts (G,) int64, centroids (G, 3), normals (G, 3), curvature (G,)) of (P, 3) points grouped
-    by (P,) int64 ids in [0, G); points of negative id are left out.
+@dataclass(frozen=True)
+class Moments:
+    """Point groups summarised: ``counts`` (G,) int64, ``centroids`` (G, 3), ``covariance`` (G, 3, 3) and
+    ``fitted`` (G,) bool, the groups whose covariance was computed (zero elsewhere)."""
 
-    Curvature is the surface variation lambda_0 / (lambda_0 + lambda_1 + lambda_2) of the group's covariance
-    (0 on a perfect plane). Groups with fewer than ``min_points`` (at least 3) points are not fitted: zero
-    normal, curvature inf. ``closed_form`` solves the 3 x 3 eigenproblems in closed form (several times
-    faster for many groups, same normals to ~1e-10 rad, but of arbitrary sign).
-    """
+    counts: np.ndarray
+    centroids: np.ndarray
+    covariance: np.ndarray
+    fitted: np.ndarray
+
+
+def moments(points: np.ndarray, group: np.ndarray, num_groups: int, min_points: int = 3) -> Moments:
+    """Returns the moments of (P, 3) points grouped by (P,) int64 ids in [0, G) (negative: left out); groups
+    with fewer than ``min_points`` (at least 3) points get a centroid but no covariance."""
     # contiguous columns: bincount copies strided weights
     if len(group) and group.min() < 0:
         valid = group >= 0
@@ -104,22 +107,60 @@ def fit_planes(
     counts = np.bincount(group, minlength=num_groups)
     safe = np.maximum(counts, 1).astype(np.float64)
     centroids = np.stack([np.bincount(group, c, num_groups) for c in cols], axis=1) / safe[:, None]
-    # a sparse scan's voxels mostly hold one or two points: neither moments nor eigen-solves for those
+    # a sparse scan's voxels mostly hold one or two points: no moments for those
     fit = counts >= max(min_points, 3)
     if not fit.all():
         keep = fit[group]
         group, cols = group[keep], [c[keep] for c in cols]
-    fitted = (np.cumsum(fit) - 1)[group]  # compact index of the fitted groups
     # centred first: sums of squares stay exact far from the origin
     d = [c - centroids[:, i][group] for i, c in enumerate(cols)]
-    cov = np.empty((int(fit.sum()), 3, 3))
+    cov = np.zeros((num_groups, 3, 3))
     for i, j in itertools.combinations_with_replacement(range(3), 2):
-        cov[:, i, j] = cov[:, j, i] = np.bincount(fitted, d[i] * d[j], len(cov)) / safe[fit]
-    normals = np.zeros((num_groups, 3))
-    curvature = np.full(num_groups, np.inf)
-    smallest, normals[fit], total = _smallest_eigen(cov) if closed_form else _smallest_eigh(cov)
-    curvature[fit] = smallest / np.maximum(total, 1e-300)
-    return counts, centroids, normals, curvature
+        cov[:, i, j] = cov[:, j, i] = np.bincount(group, d[i] * d[j], num_groups) / safe
+    return Moments(counts, centroids, cov, fit)
+
+
+def combine_moments(parts: Moments, into: np.ndarray, num_groups: int) -> Moments:
+    """Returns the moments of groups made of fitted ``parts`` (G,): part g joins group into[g] (negative: none).
+
+    Parallel-axis theorem: S = sum_g n_g (C_g + (c_g - c)(c_g - c)^T) about the joint centroid c; a group
+    holds all the points of its parts, so it equals ``moments`` of those points up to rounding.
+    """
+    index = np.flatnonzero((into >= 0) & parts.fitted)
+    to, n = into[index], parts.counts[index].astype(np.float64)
+    counts = np.bincount(to, parts.counts[index], num_groups).astype(np.int64)
+    safe = np.maximum(counts, 1).astype(np.float64)
+    part_c = parts.centroids[index]
+    sums = np.stack([np.bincount(to, n * part_c[:, i], num_groups) for i in range(3)], axis=1)
+    centroids = sums / safe[:, None]
+    d = part_c - centroids[to]
+    scatter = n[:, None, None] * (parts.covariance[index] + d[:, :, None] * d[:, None, :])
+    flat = [np.bincount(to, scatter[:, i, j], num_groups) for i in range(3) for j in range(3)]
+    cov = np.stack(flat, axis=1).reshape(num_groups, 3, 3) / safe[:, None, None]
+    return Moments(counts, centroids, cov, counts >= 3)
+
+
+def plane_fits(m: Moments, closed_form: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (normals (G, 3), curvature (G,)) of moments: the covariance's smallest eigenvector and the
+    surface variation lambda_0 / (lambda_0 + lambda_1 + lambda_2) (0 on a perfect plane); zero normal and
+    curvature inf where not fitted. ``closed_form`` solves the 3 x 3 eigenproblems in closed form (several
+    times faster for many groups, same normals to ~1e-10 rad, but of arbitrary sign)."""
+    normals = np.zeros((len(m.counts), 3))
+    curvature = np.full(len(m.counts), np.inf)
+    cov = m.covariance[m.fitted]
+    smallest, normals[m.fitted], total = _smallest_eigen(cov) if closed_form else _smallest_eigh(cov)
+    curvature[m.fitted] = smallest / np.maximum(total, 1e-300)
+    return normals, curvature
+
+
+def fit_planes(
+    points: np.ndarray, group: np.ndarray, num_groups: int, min_points: int = 3, closed_form: bool = False
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (counts (G,) int64, centroids (G, 3), normals (G, 3), curvature (G,)) of (P, 3) points grouped
+    by (P,) int64 ids in [0, G); points of negative id are left out. See ``moments`` and ``plane_fits``."""
+    m = moments(points, group, num_groups, min_points)
+    normals, curvature = plane_fits(m, closed_form)
+    return m.counts, m.centroids, normals, curvature
 
 
 def _smallest_eigh(cov: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -8,7 +8,16 @@ import pytest
 import linereg.voxels as voxels_module
 from linereg.config import Lines3DConfig
 from linereg.planes import _candidates, _nearest, segment_planes
-from linereg.voxels import AROUND, FORWARD, build_voxels, fit_planes, neighbors, voxel_downsample
+from linereg.voxels import (
+    AROUND,
+    FORWARD,
+    build_voxels,
+    combine_moments,
+    fit_planes,
+    moments,
+    neighbors,
+    voxel_downsample,
+)
 
 
 def _brute_neighbors(vox, index, offsets):
@@ -93,6 +102,18 @@ def test_fit_planes_known_plane_and_ignored_points():
     assert counts[0] == 500 and curv[0] < 1e-12
     np.testing.assert_allclose(abs(nrm[0] @ normal), 1.0, atol=1e-12)
     np.testing.assert_allclose(cen[0], plane.mean(axis=0), atol=1e-12)
+
+
+def test_combined_moments_are_the_moments_of_the_union():
+    points, group = _covariance_groups(np.random.default_rng(6))
+    parts = moments(points, group, int(group.max()) + 1)
+    into = np.random.default_rng(7).integers(-1, 20, size=len(parts.counts))
+    joined = combine_moments(parts, into, 20)
+    # the union of the fitted parts (the last group, 2 points, has no covariance and joins nothing)
+    direct = moments(points, np.where(parts.fitted[group], into[group], -1), 20)
+    np.testing.assert_array_equal(joined.counts, direct.counts)
+    np.testing.assert_allclose(joined.centroids, direct.centroids, rtol=0, atol=1e-11)
+    np.testing.assert_allclose(joined.covariance, direct.covariance, rtol=0, atol=1e-9)
 
 
 def test_candidates_are_the_regions_around_each_voxel():
