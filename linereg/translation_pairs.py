@@ -95,13 +95,12 @@ class Pairs:
     def loose(self) -> tuple[np.ndarray, ...]:
         """Returns per combo with an unclustered 3D segment ``(i, j, side, bearing, turn, side_off, bear_off)``.
 
-        side = direction x bearing; side_off, bear_off: (c,) the segment midpoint's coordinates along side
-        and bearing (a translation adds ``T . side``, ``T . bearing``).
+        side: (c, 3) the turned normal (up to sign, direction x bearing); side_off, bear_off: (c,) the
+        segment midpoint's coordinates along side and bearing (a translation adds ``T . side``, ``T . bearing``).
         """
         sel = np.flatnonzero(self.combo_g >= self.num_clusters)
         j = self.members[self.starts[self.combo_g[sel]]]
-        bearing = take_rows(self.combo_bearing, sel)
-        side = cross(take_rows(self.directions, self.combo_g[sel]), bearing)
+        side, bearing = take_rows(self.combo_normal, sel), take_rows(self.combo_bearing, sel)
         p = take_rows(self.point, j)
         return self.combo_i[sel], j, side, bearing, self.combo_turn[sel], dot(p, side), dot(p, bearing)
 
@@ -157,13 +156,19 @@ def _combo_frames(
     d = lines2d[:, 2:4] - lines2d[:, 0:2]
     across = np.c_[-d[:, 1], d[:, 0]] / np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-300)[:, None]
     shifted = pixels_to_rays(camera, mid + across)  # the midpoint's ray, 1 px across the segment
-    a = take_rows(dirs, cg)
-    normal = _unit(cross(take_rows(ray, ci), a))
-    bearing = cross(a, normal)  # = ray - (ray . a) a, normalised: towards i's rays
-    moved = take_rows(shifted, ci)
-    moved = _unit(moved - dot(moved, a)[:, None] * a)
-    turn = np.arccos(np.clip(dot(moved, bearing), -1.0, 1.0))
-    return normal, bearing, turn
+    # (3, C) coordinate rows: every operation below runs on contiguous rows
+    a = np.take(dirs.T, cg, axis=1)
+    normal = _unit(cross(np.take(ray.T, ci, axis=1).T, a.T)).T
+    bearing = cross(a.T, normal.T).T  # = ray - (ray . a) a, normalised: towards i's rays
+    moved = np.take(shifted.T, ci, axis=1)
+    moved = moved - (moved[0] * a[0] + moved[1] * a[1] + moved[2] * a[2]) * a
+    moved = moved / np.maximum(
+        np.sqrt(moved[0] * moved[0] + moved[1] * moved[1] + moved[2] * moved[2]), 1e-300
+    )
+    turn = np.arccos(
+        np.clip(moved[0] * bearing[0] + moved[1] * bearing[1] + moved[2] * bearing[2], -1.0, 1.0)
+    )
+    return normal.T, bearing.T, turn
 
 
 def _cluster_frames(
@@ -195,8 +200,16 @@ def _cluster_frames(
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Returns (P, 3) row-wise cross products of (P, 3) arrays (np.cross is several times slower here)."""
-    out = np.empty(np.broadcast_shapes(a.shape, b.shape))
+    """Returns (P, 3) row-wise cross products of (P, 3) arrays (np.cross is several times slower here).
+
+    The result has a's memory layout: transposed views of (3, P) arrays give a transposed (3, P) array.
+    """
+    shape = np.broadcast_shapes(a.shape, b.shape)
+    out = (
+        np.empty(shape[::-1]).T
+        if a.ndim == 2 and a.flags.f_contiguous and not a.flags.c_contiguous
+        else np.empty(shape)
+    )
     out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
     out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
     out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
@@ -216,7 +229,7 @@ def take_rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
 def _unit(v: np.ndarray) -> np.ndarray:
     if v.ndim == 1:
         return _unit(v[None, :])[0]
-    return v / np.maximum(np.sqrt(dot(v, v)), 1e-300)[:, None]
+    return v / np.maximum(np.sqrt(dot(v, v)), 1e-300)[:, None]  # keeps v's memory layout
 
 
 def _vanishing_compatible(
