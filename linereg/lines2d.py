@@ -65,14 +65,13 @@ def to_gray8(image: np.ndarray) -> np.ndarray:
         image = cv2.cvtColor(np.ascontiguousarray(image), code)
     if image.dtype == np.uint8:
         return image
+    # OpenCV's single vectorised passes: numpy's chains of float temporaries took ~15 ms at 1080p
     if image.dtype.kind == "f":
-        if not np.isfinite(image).all():
+        lo, hi = float(image.min()), float(image.max())  # NaN propagates, and inf is a bound
+        if not (math.isfinite(lo) and math.isfinite(hi)):
             raise InvalidInputError("image holds NaN or infinite values")
-        lo, hi = float(image.min()), float(image.max())
-        if lo >= 0.0 and hi <= 1.0:
-            return (image * 255.0 + 0.5).astype(np.uint8)
-        if lo >= 0.0 and hi <= 255.0:
-            return (image + 0.5).astype(np.uint8)
+        if lo >= 0.0 and hi <= 255.0:  # convertScaleAbs rounds and saturates to uint8
+            return cv2.convertScaleAbs(image, alpha=255.0 if hi <= 1.0 else 1.0)
     return _stretch(image)
 
 
@@ -80,12 +79,15 @@ def _stretch(gray: np.ndarray) -> np.ndarray:
     """Returns uint8 of a grey image mapped linearly from its 0.5 / 99.5 percentiles to 0 / 255.
 
     Percentiles (not min/max) so that a few hot pixels of a 16-bit sensor do not squash the contrast;
-    taken on every 4th pixel, which is plenty for two quantiles and keeps 4K images cheap.
+    taken on a grid of ~50 000 pixels, plenty for two quantiles, so that 4K images stay cheap.
     """
-    lo, hi = np.percentile(gray[::4, ::4], [0.5, 99.5])
-    scale = 255.0 / max(float(hi - lo), 1e-12)
-    out = (gray.astype(np.float32) - np.float32(lo)) * np.float32(scale)
-    return np.clip(out + 0.5, 0.0, 255.0).astype(np.uint8)
+    step = max(1, math.isqrt(gray.size // 50_000))
+    lo, hi = (float(q) for q in np.percentile(gray[::step, ::step], [0.5, 99.5]))
+    scale = 255.0 / max(hi - lo, 1e-12)
+    # clipped at lo (rounded up for integers) first: convertScaleAbs's absolute value would mirror darker
+    # pixels to bright ones
+    floor = np.asarray(math.ceil(lo) if gray.dtype.kind == "u" else lo, dtype=gray.dtype)
+    return cv2.convertScaleAbs(np.maximum(gray, floor), alpha=scale, beta=-lo * scale)
 
 
 def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:

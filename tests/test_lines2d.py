@@ -11,7 +11,7 @@ import pytest
 import linereg
 from linereg.config import LineDetectConfig
 from linereg.errors import InvalidInputError
-from linereg.lines2d import along_border, detect, frame_margins, lsd_segments, merge_collinear
+from linereg.lines2d import along_border, detect, frame_margins, lsd_segments, merge_collinear, to_gray8
 
 DATA = pathlib.Path("/work/shared/data")
 # a tilted quadrilateral: four long edges at various angles
@@ -191,3 +191,11 @@ def test_bands_keep_short_segments_near_a_cut(camera, rng):
     assert len(one) == len(two) == 8
     for truth in one:  # the same segments, within a pixel
         assert matches_of(truth, two, dist_px=1.0).sum() == 1
+
+
+def test_16bit_stretch_keeps_dead_pixels_dark_and_hot_ones_bright(rng):
+    img = (polygon_image(QUAD, rng).astype(np.uint16) * 40 + 3000).astype(np.uint16)
+    img[5, 5], img[6, 6] = 0, 65535
+    gray = to_gray8(img)
+    assert gray.dtype == np.uint8 and gray[5, 5] == 0 and gray[6, 6] == 255
+    assert gray.max() == 255 and gray.min() == 0 and np.percentile(gray, 50) > 100  # the picture's range used
