@@ -88,13 +88,19 @@ def _relabel(labels: np.ndarray, min_count: int) -> np.ndarray:
     """Returns labels renumbered 0.. by decreasing size, groups smaller than ``min_count`` set to -1."""
     valid = labels >= 0
     counts = np.bincount(labels[valid]) if valid.any() else np.zeros(0, dtype=np.int64)
+    out = np.full_like(labels, -1)
+    out[valid] = _renumber(counts, min_count)[labels[valid]]
+    return out
+
+
+def _renumber(counts: np.ndarray, min_count: int) -> np.ndarray:
+    """Returns (G,) int64 new number of each group of (G,) ``counts``: 0.. by decreasing count (ties keep
+    their order), -1 for groups smaller than ``min_count``."""
     order = np.argsort(-counts, kind="stable")
     new_of_old = np.full(len(counts), -1, dtype=np.int64)
     kept = order[counts[order] >= min_count]
     new_of_old[kept] = np.arange(len(kept))
-    out = np.full_like(labels, -1)
-    out[valid] = new_of_old[labels[valid]]
-    return out
+    return new_of_old
 
 
 def _touching(voxels: Voxels, point_labels: np.ndarray) -> np.ndarray:
@@ -116,22 +122,22 @@ def _touching(voxels: Voxels, point_labels: np.ndarray) -> np.ndarray:
 
 def _merge_coplanar(
     labels: np.ndarray, points: np.ndarray, voxels: Voxels, config: Lines3DConfig
-) -> np.ndarray:
-    """Returns point labels with adjacent near-coplanar regions merged (Lu et al.: region merging)."""
+) -> tuple[np.ndarray, Moments]:
+    """Returns ((P,) int64 point labels with adjacent near-coplanar regions merged (Lu et al.: region
+    merging), numbered 0.. by decreasing size, and the merged regions' moments)."""
     num = int(labels.max()) + 1
-    valid = labels >= 0
-    _, cen, nrm, _ = fit_planes(points, labels, num)
+    fits = moments(points, labels, num)
+    cen, (nrm, _) = fits.centroids, plane_fits(fits)
     pairs = _touching(voxels, labels)[:, :2]
-    if len(pairs) == 0:
-        return labels
     a, b = pairs[:, 0], pairs[:, 1]
     ok = np.abs(np.einsum("ij,ij->i", nrm[a], nrm[b])) >= np.cos(np.radians(config.merge_angle_deg))
     ok &= np.abs(np.einsum("ij,ij->i", nrm[a], cen[b] - cen[a])) <= config.merge_distance_m
     ok &= np.abs(np.einsum("ij,ij->i", nrm[b], cen[a] - cen[b])) <= config.merge_distance_m
     comp = _components(num, a[ok], b[ok])
-    out = labels.copy()
-    out[valid] = comp[labels[valid]]
-    return out
+    merged = _renumber(np.bincount(comp, fits.counts, num).astype(np.int64), 1)[comp]
+    out = np.full_like(labels, -1)
+    out[labels >= 0] = merged[labels[labels >= 0]]
+    return out, combine_moments(fits, merged, int(merged.max()) + 1)
 
 
 def _assign_points(
@@ -226,8 +232,8 @@ def segment_planes(
         return _empty_planes(len(points))
     # merge across scales on a grid coarse enough to join sparse neighbours, fine enough for details
     grid = build_voxels(points, min(0.5 * voxel_m, 4.0 * config.voxel_m))
-    labels = _relabel(_merge_coplanar(labels, points, grid, config), 1)
-    labels = _relabel(_drop_off_plane(points, labels, config.distance_m), config.min_region_points)
+    labels, regions = _merge_coplanar(labels, points, grid, config)
+    labels = _relabel(_drop_off_plane(points, labels, regions, config.distance_m), config.min_region_points)
     if (labels < 0).all():
         return _empty_planes(len(points))
     num = int(labels.max()) + 1
@@ -251,13 +257,16 @@ def _regions_at(points: np.ndarray, config: Lines3DConfig) -> np.ndarray:
     return _relabel(labels, config.min_region_points)
 
 
-def _drop_off_plane(points: np.ndarray, labels: np.ndarray, distance_m: float) -> np.ndarray:
-    """Returns labels with points farther than distance_m from their region's (refitted) plane set to -1."""
-    ok = labels >= 0
-    _, cen, nrm, _ = fit_planes(points, labels, int(labels.max()) + 1)
+def _drop_off_plane(
+    points: np.ndarray, labels: np.ndarray, regions: Moments, distance_m: float
+) -> np.ndarray:
+    """Returns (P,) labels with points farther than distance_m from their region's plane (fitted to all its
+    points, from its ``regions`` moments) set to -1."""
+    # distances are |(x - c) . n|: the normals' signs do not matter, so the faster closed form does
+    normals, _ = plane_fits(regions, closed_form=True)
     out = labels.copy()
-    idx = np.flatnonzero(ok)
-    dist = plane_distances(points, idx, cen, nrm, labels[idx])
+    idx = np.flatnonzero(labels >= 0)
+    dist = plane_distances(points, idx, regions.centroids, normals, labels[idx])
     out[idx[dist > distance_m]] = -1
     return out
 
