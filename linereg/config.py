@@ -131,11 +131,15 @@ class TranslationConfig:
     screen_num_verify: int = 4
     finalists: int = 4
     finalist_fraction: float = 0.3  # ... and only those screened at >= this fraction of the best count
-    # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``) are
-    # all refined; the best refined fit wins (2D length of the inliers per pixel of RMS residual): a
-    # symmetric building seen from its far side explains as many segments before refinement, not as well after
-    contenders: int = 4
-    contest_fraction: float = 0.9
+    # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``; each
+    # candidate's runner-up too) are all refined; the best refined fit wins (``pipeline._contest``: 2D
+    # length the inliers explain minus ``unexplained_weight`` x the projected map length that falls where the
+    # image has no segment within ``empty_radius_fraction`` of its diagonal): a symmetric building seen from
+    # its far side explains as many segments, but it also predicts facade edges in the empty sky
+    contenders: int = 8
+    contest_fraction: float = 0.7
+    unexplained_weight: float = 1.0
+    empty_radius_fraction: float = 0.08
 
 
 @dataclass(frozen=True)
