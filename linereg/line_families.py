@@ -129,3 +129,25 @@ def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
         half = 0.5 * length[members, None] * sign * direction
         out[members] = np.concatenate([mid - half, mid + half], axis=1)
     return out
+
+
+def box_lines(uv: np.ndarray, basis: np.ndarray, families: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Returns (4, 4) or (0, 4) 2D sides of the rectangle round a region's (n, 2) points whose sides follow
+    its best supported in-plane family (plane axes (2, 3) ``basis``) and the perpendicular to it.
+
+    A small region (a window pane) spans a few raster cells only, too few for its contour's runs to give
+    its sides; man-made regions are often rectangles, and a side the points do not follow is dropped by
+    the edge refinement.
+    """
+    dirs, support = families
+    flat = dirs @ basis.T
+    in_plane = np.linalg.norm(flat, axis=1) >= np.cos(np.radians(_IN_PLANE_DEG))
+    if len(uv) < 3 or not in_plane.any():
+        return np.zeros((0, 4))
+    best = np.flatnonzero(in_plane)[np.argmax(support[in_plane])]
+    d1 = flat[best] / np.linalg.norm(flat[best])
+    d2 = np.array([-d1[1], d1[0]])
+    s, t = uv @ d1, uv @ d2
+    (s0, s1), (t0, t1) = np.percentile(s, [0.2, 99.8]), np.percentile(t, [0.2, 99.8])
+    corners = np.outer([s0, s1, s1, s0], d1) + np.outer([t0, t0, t1, t1], d2)
+    return np.concatenate([corners, np.roll(corners, -1, axis=0)], axis=1)

@@ -21,7 +21,7 @@ from .contours import image_lines, plane_basis, region_image
 from .creases import crease_segments
 from .edge_refine import refine_edges
 from .errors import InvalidInputError
-from .line_families import dominant_directions, has_parallel, snap_directions, snap_to_families
+from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
 from .planes import Planes, segment_planes, voxel_downsample
 
 logger = logging.getLogger(__name__)
@@ -169,10 +169,13 @@ def contour_segments(
     band = 2.0 * frame.cell
     size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
     lines, fixed = snap_to_families(frame.lines, frame.basis, families, config.snap_angle_deg)
+    box = box_lines(frame.uv, frame.basis, families)
+    raw = np.concatenate([frame.lines, box])
+    lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
     near = _beside_points(loose, region, frame.basis, lines, band)
     lines, kept = refine_edges(frame.uv, lines, band, near, fixed)
     # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
-    kept[kept] = has_parallel(frame.lines[kept], size, config.snap_angle_deg)
+    kept[kept] = has_parallel(raw[kept], size, config.snap_angle_deg)
     return to_world(snap_directions(lines[kept], config.snap_angle_deg), region, frame.basis)
 
 
