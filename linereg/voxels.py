@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import itertools
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
@@ -16,16 +15,18 @@ import numpy as np
 FORWARD = np.array([o for o in itertools.product((-1, 0, 1), repeat=3) if o > (0, 0, 0)], dtype=np.int64)
 # the voxel itself and its 26 neighbours
 AROUND = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.int64)
-# a grid up to this size (128 MB of int32) is tabulated: a table look-up is 5x faster than a binary search
+# a grid up to this size (128 MB of int32) is tabulated: finding a voxel in a table is 5x faster than a
+# binary search, and the occupied cells come without sorting the points
 _MAX_TABLE_CELLS = 2**25
 
 
 @dataclass(frozen=True)
 class Voxels:
     """Occupied voxels of size ``size_m``: ``keys`` (V, 3) int64 integer coordinates (from 0), ``flat``
-    (V,) int64 sorted linear index of each in a grid of ``cells`` padded by one voxel on every side,
-    ``strides`` (3,) int64 of that grid, ``of_point`` (P,) int64 voxel of each point, ``counts`` (V,) int64
-    points."""
+    (V,) int64 sorted linear index of each in a grid padded by one voxel on every side, ``strides`` (3,)
+    int64 of that grid, ``of_point`` (P,) int64 voxel of each point, ``counts`` (V,) int64 points, and
+    ``lookup`` (cells,) int32 the voxel of every grid cell (-1: empty), None for grids too large for a table.
+    """
 
     keys: np.ndarray
     flat: np.ndarray
@@ -33,16 +34,7 @@ class Voxels:
     of_point: np.ndarray
     counts: np.ndarray
     size_m: float
-    cells: int
-
-    @cached_property
-    def lookup(self) -> np.ndarray | None:
-        """(cells,) int32 voxel index of every grid cell (-1: empty), None for grids too large to tabulate."""
-        if self.cells > _MAX_TABLE_CELLS or len(self.flat) >= 2**31:
-            return None
-        table = np.full(self.cells, -1, dtype=np.int32)
-        table[self.flat] = np.arange(len(self.flat), dtype=np.int32)
-        return table
+    lookup: np.ndarray | None
 
 
 def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
@@ -53,12 +45,22 @@ def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
     lo = np.array([np.floor(c.min() / voxel_m) for c in cols], dtype=np.int64)
     dims = np.array([np.floor(c.max() / voxel_m) for c in cols], dtype=np.int64) - lo + 3  # -1, +1 room
     strides = np.array([dims[1] * dims[2], dims[2], 1], dtype=np.int64)
-    flat = np.zeros(len(points), dtype=np.int64)
+    cell = np.zeros(len(points), dtype=np.int64)
     for c, low, stride in zip(cols, lo, strides, strict=True):
-        flat += (np.floor(c / voxel_m).astype(np.int64) - (low - 1)) * stride
-    flat, of_point, counts = np.unique(flat, return_inverse=True, return_counts=True)
+        cell += (np.floor(c / voxel_m).astype(np.int64) - (low - 1)) * stride
+    lookup = None
+    if int(dims.prod()) <= _MAX_TABLE_CELLS:
+        # a table of every cell: the occupied ones in order without sorting the points
+        lookup = np.full(int(dims.prod()), -1, dtype=np.int32)
+        lookup[cell] = 0
+        flat = np.flatnonzero(lookup == 0)
+        lookup[flat] = np.arange(len(flat), dtype=np.int32)
+        of_point = lookup[cell].astype(np.int64)
+        counts = np.bincount(of_point, minlength=len(flat))
+    else:
+        flat, of_point, counts = np.unique(cell, return_inverse=True, return_counts=True)
     vox = np.stack(np.unravel_index(flat, tuple(dims)), axis=1) - 1
-    return Voxels(vox, flat, strides, of_point.ravel(), counts, voxel_m, int(dims.prod()))
+    return Voxels(vox, flat, strides, of_point.ravel(), counts, voxel_m, lookup)
 
 
 def neighbors(voxels: Voxels, index: np.ndarray, offsets: np.ndarray) -> np.ndarray:
