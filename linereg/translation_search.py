@@ -165,6 +165,8 @@ def _ranked_cells(
     T: np.ndarray, key: np.ndarray, rows: np.ndarray, top: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ``_fullest_cells`` among the votes ``rows`` (ascending) only."""
+    if len(rows) == 0:
+        return np.zeros((0, 3)), np.zeros(0, dtype=np.int64)
     order = rows[np.argsort(key[rows])]
     sorted_key = key[order]
     first = np.flatnonzero(np.r_[True, sorted_key[1:] != sorted_key[:-1]])
