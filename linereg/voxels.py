@@ -88,8 +88,8 @@ def adjacent_pairs(voxels: Voxels, index: np.ndarray) -> tuple[np.ndarray, np.nd
 
 @dataclass(frozen=True)
 class Moments:
-    """Point groups summarised: ``counts`` (G,) int64, ``centroids`` (G, 3), ``covariance`` (G, 3, 3) and
-    ``fitted`` (G,) bool, the groups whose covariance was computed (zero elsewhere)."""
+    """Point groups summarised: ``counts`` (G,) int64, ``centroids`` (G, 3), ``fitted`` (G,) bool the groups
+    whose covariance was computed and their ``covariance`` (F, 3, 3), in group order."""
 
     counts: np.ndarray
     centroids: np.ndarray
@@ -116,9 +116,10 @@ def moments(points: np.ndarray, group: np.ndarray, num_groups: int, min_points: 
         group, cols = group[keep], [c[keep] for c in cols]
     # centred first: sums of squares stay exact far from the origin
     d = [c - centroids[:, i][group] for i, c in enumerate(cols)]
-    cov = np.zeros((num_groups, 3, 3))
+    fitted = (np.cumsum(fit) - 1)[group]  # compact index of the fitted groups
+    cov = np.empty((int(fit.sum()), 3, 3))
     for i, j in itertools.combinations_with_replacement(range(3), 2):
-        cov[:, i, j] = cov[:, j, i] = np.bincount(group, d[i] * d[j], num_groups) / safe
+        cov[:, i, j] = cov[:, j, i] = np.bincount(fitted, d[i] * d[j], len(cov)) / safe[fit]
     return Moments(counts, centroids, cov, fit)
 
 
@@ -129,6 +130,7 @@ def combine_moments(parts: Moments, into: np.ndarray, num_groups: int) -> Moment
     holds all the points of its parts, so it equals ``moments`` of those points up to rounding.
     """
     index = np.flatnonzero((into >= 0) & parts.fitted)
+    row = (np.cumsum(parts.fitted) - 1)[index]  # of the parts' covariance
     to, n = into[index], parts.counts[index].astype(np.float64)
     counts = np.bincount(to, parts.counts[index], num_groups).astype(np.int64)
     safe = np.maximum(counts, 1).astype(np.float64)
@@ -136,10 +138,11 @@ def combine_moments(parts: Moments, into: np.ndarray, num_groups: int) -> Moment
     sums = np.stack([np.bincount(to, n * part_c[:, i], num_groups) for i in range(3)], axis=1)
     centroids = sums / safe[:, None]
     d = part_c - centroids[to]
-    scatter = n[:, None, None] * (parts.covariance[index] + d[:, :, None] * d[:, None, :])
+    scatter = n[:, None, None] * (parts.covariance[row] + d[:, :, None] * d[:, None, :])
     flat = [np.bincount(to, scatter[:, i, j], num_groups) for i in range(3) for j in range(3)]
     cov = np.stack(flat, axis=1).reshape(num_groups, 3, 3) / safe[:, None, None]
-    return Moments(counts, centroids, cov, counts >= 3)
+    fitted = counts >= 3
+    return Moments(counts, centroids, cov[fitted], fitted)
 
 
 def plane_fits(m: Moments, closed_form: bool = False) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +152,7 @@ def plane_fits(m: Moments, closed_form: bool = False) -> tuple[np.ndarray, np.nd
     times faster for many groups, same normals to ~1e-10 rad, but of arbitrary sign)."""
     normals = np.zeros((len(m.counts), 3))
     curvature = np.full(len(m.counts), np.inf)
-    cov = m.covariance[m.fitted]
+    cov = m.covariance
     smallest, normals[m.fitted], total = _smallest_eigen(cov) if closed_form else _smallest_eigh(cov)
     curvature[m.fitted] = smallest / np.maximum(total, 1e-300)
     return normals, curvature
