@@ -58,9 +58,28 @@ def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
         of_point = lookup[cell].astype(np.int64)
         counts = np.bincount(of_point, minlength=len(flat))
     else:
-        flat, of_point, counts = np.unique(cell, return_inverse=True, return_counts=True)
+        flat, of_point, counts = _unique(cell, int(dims.prod()))
     vox = np.stack(np.unravel_index(flat, tuple(dims)), axis=1) - 1
     return Voxels(vox, flat, strides, of_point.ravel(), counts, voxel_m, lookup)
+
+
+def _unique(values: np.ndarray, bound: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ``np.unique(values, return_inverse=True, return_counts=True)`` of (N,) int64 in [0, bound)."""
+    n = len(values)
+    shift = max(n - 1, 1).bit_length()
+    if (max(bound - 1, 1).bit_length() + shift > 63) or n == 0:
+        return np.unique(values, return_inverse=True, return_counts=True)
+    # sorting values with their index packed in the low bits is several times faster than an argsort
+    packed = np.sort((values << shift) | np.arange(n, dtype=np.int64))
+    order = packed & ((1 << shift) - 1)
+    packed >>= shift
+    first = np.empty(n, dtype=bool)
+    first[0] = True
+    np.not_equal(packed[1:], packed[:-1], out=first[1:])
+    inverse = np.empty(n, dtype=np.int64)
+    inverse[order] = np.cumsum(first) - 1
+    starts = np.flatnonzero(first)
+    return packed[starts], inverse, np.diff(np.append(starts, n))
 
 
 def neighbors(voxels: Voxels, index: np.ndarray, offsets: np.ndarray) -> np.ndarray:

@@ -44,6 +44,17 @@ def test_neighbors_match_brute_force(lookup):
     )
 
 
+@pytest.mark.parametrize("bound", [1, 7, 2**40])
+def test_unique_matches_numpy(bound):
+    values = np.random.default_rng(bound).integers(0, bound, size=5000)
+    for ours, theirs in zip(
+        voxels_module._unique(values, bound),
+        np.unique(values, return_inverse=True, return_counts=True),
+        strict=True,
+    ):
+        np.testing.assert_array_equal(ours, theirs)
+
+
 def test_build_voxels_groups_points():
     points = np.array([[0.05, 0.05, 0.05], [0.06, 0.01, 0.09], [0.15, 0.0, 0.0], [1.0, 2.0, 3.0]])
     vox = build_voxels(points, 0.1)
