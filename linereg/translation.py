@@ -72,7 +72,8 @@ def estimate_translation(
     else:
         from .translation_search import search_candidates
 
-        candidates = search_candidates(lines2d, lines3d, camera, R, pairs, config, match)
+        T, scores, verified = search_candidates(lines2d, lines3d, camera, R, pairs, config, match)
+        return finish(lines2d, lines3d, camera, R, pairs, (T, scores), config, match, verified)
     return finish(lines2d, lines3d, camera, R, pairs, candidates, config, match)
 
 
@@ -96,7 +97,7 @@ def screen_translation(
     if pairs.size < 3:
         return 0
     screen = replace(config, max_hypotheses=config.screen_max_hypotheses, num_verify=config.screen_num_verify)
-    _, scores = search_candidates(lines2d, lines3d, camera, R, pairs, screen, match)
+    _, scores, _ = search_candidates(lines2d, lines3d, camera, R, pairs, screen, match)
     return int(scores.max()) if len(scores) else 0
 
 
@@ -150,12 +151,14 @@ def finish(
     candidates: tuple[np.ndarray, np.ndarray],
     config: TranslationConfig,
     match: MatchConfig,
+    verified: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
 ) -> TranslationHypothesis:
     """Returns the hypothesis from candidate translations (H, 3) ranked by approximate scores (H,).
 
     The best candidate is polished ("search" only: least squares, re-match) and scored with
     ``match_segments``; so is the best-scoring candidate whose camera centre lies clearly elsewhere (the
     runner-up; polished only when close). Should the runner-up end with more inliers, the two swap.
+    verified: the candidates' inlier pairs ``(h, i, j)`` (``pair_matches``), if known: polishing starts there.
     """
     T, scores = candidates
     if len(T) == 0:
@@ -163,7 +166,9 @@ def finish(
     order = np.argsort(-scores, kind="stable")
     # the paper's RANSAC keeps its best sample as is (refinement comes later, section III-D)
     polish = config.polish_rounds if config.method == "search" else 0
-    best_t, best = _polish(lines2d, lines3d, camera, R, pairs, T[order[0]], polish, match)
+    best_t, best = _polish(
+        lines2d, lines3d, camera, R, pairs, T[order[0]], polish, match, _of(verified, order[0])
+    )
     far = config.distinct_fraction * scene_size(lines3d)
     # camera centres are -R^T t, so centre distances equal translation distances
     distinct = order[np.linalg.norm(T[order] - best_t, axis=1) > far]
@@ -171,11 +176,23 @@ def finish(
         return TranslationHypothesis(best_t, best, len(best), 0)
     # a distant second (under 2/3 of the best's score) cannot win: counted exactly, not polished
     rounds = min(polish, 1) if scores[distinct[0]] >= (2.0 / 3.0) * scores[order[0]] else 0
-    other_t, other = _polish(lines2d, lines3d, camera, R, pairs, T[distinct[0]], rounds, match)
+    first = _of(verified, distinct[0])
+    other_t, other = _polish(lines2d, lines3d, camera, R, pairs, T[distinct[0]], rounds, match, first)
     if len(other) > len(best):
         best_t, best, other = other_t, other, best
     log.debug("translation: %d inliers, runner-up %d", len(best), len(other))
     return TranslationHypothesis(best_t, best, len(best), len(other), other_t, other)
+
+
+def _of(
+    verified: tuple[np.ndarray, np.ndarray, np.ndarray] | None, k: int
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Returns candidate k's inlier pairs ``(i, j)`` from all candidates' ``(h, i, j)``, if known."""
+    if verified is None:
+        return None
+    h, i, j = verified
+    sel = np.flatnonzero(h == k)
+    return i.take(sel), j.take(sel)
 
 
 def _polish(
@@ -187,14 +204,18 @@ def _polish(
     t: np.ndarray,
     rounds: int,
     match: MatchConfig,
+    first: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((3,) t, (K, 2) matches) after alternating least squares and re-matching, keeping the best.
 
     The rounds re-match on the compatible pairs (cheap); the result is matched once with match_segments.
+    first: t's inlier pairs ``(i, j)`` if already known.
     """
     best_t = np.asarray(t, float)
+    if rounds == 0:  # nothing to polish: the exact count only
+        return best_t, match_segments(lines2d, lines3d, camera, make_cam_from_world(R, best_t), match)
     scale = 0.5 * match.distance_px / max(camera.fx, camera.fy)
-    _, i, j = pair_matches(lines2d, camera, pairs, best_t[None], match)
+    i, j = first if first is not None else pair_matches(lines2d, camera, pairs, best_t[None], match)[1:]
     best_count = np.count_nonzero(np.bincount(i, minlength=len(lines2d)))
     for _ in range(rounds):
         t_new = refine_translation(pairs.plane, pairs.ends, best_t, np.c_[i, j], scale)

@@ -25,7 +25,12 @@ def pair_inliers(
     number of ``match_segments`` rows.
     """
     h, i, _ = pair_matches(lines2d, camera, pairs, T, match)
-    ok = np.zeros((len(T), len(lines2d)), dtype=bool)
+    return count_inliers(h, i, len(T), len(lines2d))
+
+
+def count_inliers(h: np.ndarray, i: np.ndarray, num_t: int, num_2d: int) -> np.ndarray:
+    """Returns (num_t,) int64 how many distinct 2D segments i each translation h matched."""
+    ok = np.zeros((num_t, num_2d), dtype=bool)
     ok[h, i] = True
     return ok.sum(axis=1)
 

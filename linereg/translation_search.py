@@ -18,7 +18,7 @@ import numpy as np
 from .camera import Camera
 from .config import MatchConfig, TranslationConfig
 from .geometry import pixels_to_rays, segment_lengths
-from .translation_inliers import pair_inliers
+from .translation_inliers import count_inliers, pair_matches
 from .translation_pairs import Pairs, dot
 
 _BORDER_PX = 2.0  # a 2D endpoint this close to the image border may be clipped: no hypothesis from it
@@ -34,14 +34,18 @@ def search_candidates(
     pairs: Pairs,
     config: TranslationConfig,
     match: MatchConfig,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((H, 3) translations, (H,) inlier counts) of the best voted hypotheses (may be empty)."""
+) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Returns ((H, 3) translations, (H,) inlier counts, their (K,) ``(h, i, j)`` inlier pairs) of the best
+    voted hypotheses (may be empty): ``pair_inliers`` with what it counted.
+    """
     T, depth = pair_hypotheses(lines2d, camera, pairs, config.seed_min_length_px, config.max_hypotheses)
     if len(T) == 0:
-        return np.zeros((0, 3)), np.zeros(0)
+        empty = np.zeros(0, dtype=np.int64)
+        return np.zeros((0, 3)), np.zeros(0), (empty, empty, empty)
     cell = config.cell_fraction * float(np.partition(depth, len(depth) // 2)[len(depth) // 2])
     T = vote_cells(T, R, cell, config.num_verify, config.verify_fraction)
-    return T, pair_inliers(lines2d, camera, pairs, T, match).astype(float)
+    h, i, j = pair_matches(lines2d, camera, pairs, T, match)
+    return T, count_inliers(h, i, len(T), len(lines2d)).astype(float), (h, i, j)
 
 
 def pair_hypotheses(
