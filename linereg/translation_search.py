@@ -13,6 +13,8 @@ border gives a wrong or no hypothesis; it still counts as an inlier when the hyp
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from .camera import Camera
@@ -90,18 +92,32 @@ def _seed_pairs(
     lines2d: np.ndarray, camera: Camera, pairs: Pairs, min_length_px: float, max_hypotheses: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns (K,) int64 ``(i, j)``: the pairs whose 2D segment may seed a hypothesis (pair order)."""
-    lo, hi = _BORDER_PX, np.array([camera.width, camera.height]) - 1.0 - _BORDER_PX
-    inside = np.all((lines2d[:, 0:2] > lo) & (lines2d[:, 0:2] < hi), axis=1)
-    inside &= np.all((lines2d[:, 2:4] > lo) & (lines2d[:, 2:4] < hi), axis=1)
-    lengths = segment_lengths(lines2d)
-    usable = inside & (lengths >= min_length_px)
-    # on large maps only the likeliest whole segments seed, up to a budget: those whose both ends meet
-    # another segment's end (a corner: not a fragment), then one end, then none; longest first within
+    shape = (camera.width, camera.height, min_length_px)
+    data = np.ascontiguousarray(lines2d, dtype=np.float64).tobytes()
+    usable, rank = (a.copy() for a in _seed_order(data, len(lines2d), *shape))
     per_segment = np.bincount(pairs.combo_i, pairs.counts(), minlength=len(lines2d)).astype(np.int64) * usable
-    rank = np.lexsort((-lengths, -_corner_ends(lines2d, _CORNER_PX)))
     usable[rank[np.cumsum(per_segment[rank]) > max_hypotheses]] = False
     combo, j = pairs.expand(np.flatnonzero(usable[pairs.combo_i]))
     return pairs.combo_i[combo], j
+
+
+# every rotation candidate of an image asks for the same order: computed once per image (keyed by content)
+@functools.lru_cache(maxsize=4)
+def _seed_order(
+    data: bytes, n: int, width: float, height: float, min_length_px: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((N,) bool usable, (N,) int64 rank) of the 2D segments (N, 4) stored in ``data``.
+
+    Only 2D segments inside the image (not clipped) and at least min_length_px long seed. On large maps
+    only the likeliest whole segments seed, up to a budget: those whose both ends meet another segment's
+    end (a corner: not a fragment), then one end, then none; longest first within (``rank``).
+    """
+    lines2d = np.frombuffer(data, dtype=np.float64).reshape(n, 4)
+    lo, hi = _BORDER_PX, np.array([width, height]) - 1.0 - _BORDER_PX
+    inside = np.all((lines2d[:, 0:2] > lo) & (lines2d[:, 0:2] < hi), axis=1)
+    inside &= np.all((lines2d[:, 2:4] > lo) & (lines2d[:, 2:4] < hi), axis=1)
+    lengths = segment_lengths(lines2d)
+    return inside & (lengths >= min_length_px), np.lexsort((-lengths, -_corner_ends(lines2d, _CORNER_PX)))
 
 
 def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction: float = 0.0) -> np.ndarray:
