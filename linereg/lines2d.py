@@ -140,8 +140,12 @@ def _lsd_band(small: np.ndarray, scale: float, axis: int, span: tuple[int, int],
     (H, W) uint8 image along ``axis`` (0 rows, 1 columns), detected with ``overlap`` px more each side.
 
     Segments lying wholly in that extra margin are dropped: the neighbouring band has them well inside.
+    The band starts where LSD's subsampling grid meets the whole image's, so that it sees the same
+    subsampled pixels as a single band would.
     """
-    lo, hi = max(span[0] - overlap, 0), min(span[1] + overlap, small.shape[axis])
+    starts = np.arange(max(span[0] - overlap - 20, 0), max(span[0] - overlap, 0) + 1)
+    lo = int(starts[np.argmin(np.abs(starts * scale - np.round(starts * scale)))])
+    hi = min(span[1] + overlap, small.shape[axis])
     band = small[:, lo:hi] if axis == 1 else small[lo:hi]
     found = cv2.createLineSegmentDetector(cv2.LSD_REFINE_STD, scale).detect(band)[0]
     if found is None:
