@@ -118,17 +118,16 @@ def _near_loose(pairs: Pairs, T: np.ndarray, distance_px: float) -> tuple[np.nda
     The line's angle from the bearing, ``atan2(x . side, x . bearing)``, is within tol exactly when it lies
     in front (``x . bearing > 0``) and ``|x . side| <= tan(tol) x . bearing`` (tol < pi / 2).
     """
-    i, j, side, bearing, turn, side_off, bear_off = pairs.loose
+    i, j, turn, axes, offsets = pairs.loose
     tol = _ANGLE_SAFETY * distance_px * turn
-    s = T @ side.T  # (H, c), in place from here: these are the largest arrays of the search
-    s += side_off[None, :]
+    sb = T.astype(np.float32) @ axes  # (H, 2c), in place from here: the largest arrays of the search
+    sb += offsets[None, :]
+    s, b = sb[:, : len(i)], sb[:, len(i) :]
     np.abs(s, out=s)
-    b = T @ bearing.T
-    b += bear_off[None, :]
     wide = np.flatnonzero(tol >= 1.5)  # a huge tolerance (a tiny focal length): the angle itself
     wide_ok = np.arctan2(s[:, wide], b[:, wide]) <= tol[wide]
     ok = b > 0
-    b *= np.tan(np.minimum(tol, 1.5))[None, :]
+    b *= np.tan(np.minimum(tol, 1.5)).astype(np.float32)[None, :]
     ok &= s <= b
     ok[:, wide] = wide_ok
     h, c = np.nonzero(ok)

@@ -93,16 +93,19 @@ class Pairs:
 
     @cached_property
     def loose(self) -> tuple[np.ndarray, ...]:
-        """Returns per combo with an unclustered 3D segment ``(i, j, side, bearing, turn, side_off, bear_off)``.
+        """Returns per combo with an unclustered 3D segment ``(i, j, turn, axes, offsets)``.
 
-        side: (c, 3) the turned normal (up to sign, direction x bearing); side_off, bear_off: (c,) the
-        segment midpoint's coordinates along side and bearing (a translation adds ``T . side``, ``T . bearing``).
+        axes: (3, 2c) float32 the turned normals (up to sign, direction x bearing), then the bearings;
+        offsets: (2c,) float32 the segment midpoint's coordinates along them (a translation T adds T @ axes).
+        Single precision: they only serve a prefilter whose tolerance is ~10^4 times its rounding.
         """
         sel = np.flatnonzero(self.combo_g >= self.num_clusters)
         j = self.members[self.starts[self.combo_g[sel]]]
         side, bearing = take_rows(self.combo_normal, sel), take_rows(self.combo_bearing, sel)
         p = take_rows(self.point, j)
-        return self.combo_i[sel], j, side, bearing, self.combo_turn[sel], dot(p, side), dot(p, bearing)
+        axes = np.concatenate([side, bearing]).T.astype(np.float32)
+        offsets = np.r_[dot(p, side), dot(p, bearing)].astype(np.float32)
+        return self.combo_i[sel], j, self.combo_turn[sel], axes, offsets
 
     def coplanarity(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Returns ((K, 3) normal n, (K,) offset n . R P_j) of pairs ``index``: eq. "coplanar" n . t = -offset."""

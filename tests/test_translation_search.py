@@ -60,7 +60,8 @@ def test_near_loose_equals_the_angle_test():
     T = t + np.random.default_rng(1).normal(scale=0.05, size=(6, 3))
     h, i, j = _near_loose(pairs, T, MatchConfig().distance_px)
     # the definition: the 3D midpoint's angle from i's bearing, seen along the direction, within the tolerance
-    _, _, side, bearing, turn, _, _ = pairs.loose
+    loose = np.flatnonzero(pairs.combo_g >= pairs.num_clusters)
+    side, bearing, turn = pairs.combo_normal[loose], pairs.combo_bearing[loose], pairs.combo_turn[loose]
     x = pairs.point[pairs.loose[1]][None] + T[:, None]
     phi = np.arctan2(np.einsum("hck,ck->hc", x, side), np.einsum("hck,ck->hc", x, bearing))
     ref_h, ref_c = np.nonzero(np.abs(phi) <= 1.5 * MatchConfig().distance_px * turn)
