@@ -230,7 +230,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Times detection on every image, prints the table, writes results.json; returns the exit code."""
+    from ..config import LineDetectConfig
     from ..errors import InvalidInputError
+    from ..lines2d import lsd_bands
     from .real import default_data_dir
 
     if args.images < 1 or args.repeats < 1:
@@ -245,14 +247,17 @@ def run(args: argparse.Namespace) -> int:
         records.append(record | quality(image, segments, truth))
     rows = summarize(records)
     print(report.format_table(rows, COLUMNS))
+    threads = lsd_bands(LineDetectConfig())
     print(
         "detect = grey + LSD + undistort + merge + filter; median over repeats per image, then over images;"
         " best-of: fastest repeat per image (median over images); CPU: process time of detect (all threads);"
-        " recall / precision vs the demo's true edges, ref recall vs full-resolution LSD (means over images)"
+        " recall / precision vs the demo's true edges, ref recall vs full-resolution LSD (means over images);"
+        f" LSD on {threads} band(s) in parallel"
     )
     results = {
         "benchmark": "lines2d",
-        "options": {"images": args.images, "repeats": args.repeats, "seed": args.seed, "data": str(data)},
+        "options": {"images": args.images, "repeats": args.repeats, "seed": args.seed, "data": str(data)}
+        | {"lsd_threads": threads},
         "targets_ms": {f"{w}x{h}": t for (w, h), t in TARGETS_MS.items()},
         "rows": rows,
         "images": [{k: v for k, v in r.items() if k != "key"} for r in records],
