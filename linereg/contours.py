@@ -29,7 +29,9 @@ def region_image(uv: np.ndarray, cell: float, config: Lines3DConfig) -> tuple[np
     (n, 2) in-plane points; sampling gaps closed, holes and islands too small to hold an edge removed."""
     extent = np.ptp(uv, axis=0) if len(uv) else np.zeros(2)
     cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / _MAX_RASTER_PIXELS)))
-    lo = uv.min(axis=0) - 2 * cell  # a 2-cell empty border: contours never touch the image edge
+    # a 2-cell empty border: contours never touch the image edge; the extreme points fall mid-cell, not on
+    # a cell border where rounding would decide their cell
+    lo = uv.min(axis=0) - 2.5 * cell
     ij = np.floor((uv - lo) / cell).astype(np.int64)
     image: np.ndarray = np.zeros((int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3), np.uint8)
     image[ij[:, 1], ij[:, 0]] = 255
@@ -48,10 +50,19 @@ def _remove_small(image: np.ndarray, min_area: float) -> np.ndarray:
     return np.where(keep[labels], 255, 0).astype(np.uint8)
 
 
-def image_lines(image: np.ndarray, min_cells: float, config: Lines3DConfig) -> np.ndarray:
-    """Returns (k, 4) float64 pixel segments x1, y1, x2, y2 fitted to the straight runs of every contour
-    (outer and hole) of the (H, W) uint8 image; runs shorter than min_cells are dropped."""
-    contours, _ = cv2.findContours(image, cv2.RETR_LIST, cv2.CHAIN_APPROX_NONE)
+def image_contours(image: np.ndarray) -> tuple[list[np.ndarray], np.ndarray]:
+    """Returns ((n, 1, 2) int32 pixel contours, outer and hole, of the (H, W) uint8 image, and a (C,) bool
+    array telling the holes)."""
+    contours, hierarchy = cv2.findContours(image, cv2.RETR_CCOMP, cv2.CHAIN_APPROX_NONE)
+    hole = hierarchy.reshape(-1, 4)[:, 3] >= 0 if len(contours) else np.zeros(0, dtype=bool)
+    return list(contours), hole
+
+
+def image_lines(
+    image: np.ndarray, contours: list[np.ndarray], min_cells: float, config: Lines3DConfig
+) -> np.ndarray:
+    """Returns (k, 4) float64 pixel segments x1, y1, x2, y2 fitted to the straight runs of the contours
+    of the (H, W) uint8 image; runs shorter than min_cells are dropped."""
     pixels, run_start, run_len = _runs(contours, min_cells, config.approx_cells)
     if len(run_len) == 0:
         return np.zeros((0, 4))

@@ -15,6 +15,8 @@ from scipy.spatial import cKDTree
 _MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
 _MIN_BIN_POINTS = 6  # the maximum of fewer points says little
 _MIN_LINE_POINTS = 10
+_ON_PLANE_M = 0.01  # points of no region this close to a region's plane lie on it (range noise)
+_MAX_GOING_ON = 0.2  # such points beyond an edge, as many as this share of the region's points along it
 
 
 def refine_edges(
@@ -55,7 +57,9 @@ def refine_edges(
     outward = -np.sign(np.bincount(line, s, k))  # the points lie on the inner side
     fixed = np.zeros(k, dtype=bool) if fixed is None else fixed
     geometry = (a, d, m * outward[:, None], length)
-    off = _beside_pairs(beside, geometry, band)
+    pairs = _beside_pairs(beside, geometry, band)
+    on_plane = np.abs(pairs[:, 3]) < _ON_PLANE_M
+    off = pairs[~on_plane]
     o = outward[line] * s
     # the free fit tells whether a straight edge lies behind the line (a ragged outline's chords snap
     # onto a family direction too); lines too short for it (one bin) may still take a known direction
@@ -68,6 +72,11 @@ def refine_edges(
     short = fixed & ~np.isfinite(slope) & (on_line0 >= 1)
     ok &= straight | short
     ends[fixed] = np.clip(intercept0[fixed, None], -band, band)
+    # points of no region in the plane beyond the edge: the surface goes on, only its labels stop (region
+    # growing leaves out the points round a crease, for one)
+    on = pairs[on_plane]
+    beyond = on[:, 2] > np.nan_to_num(ends[on[:, 0].astype(np.int64)].max(axis=1), nan=band)
+    ok &= np.bincount(on[beyond, 0].astype(np.int64), minlength=k) < _MAX_GOING_ON * count
     shift = (outward[:, None, None] * ends[..., None]) * m[:, None, :]
     return np.concatenate([a + shift[:, 0], b + shift[:, 1]], axis=1), ok
 

@@ -11,6 +11,8 @@ import numpy as np
 
 _LONE_FRACTION = 0.25  # a line off its region's dominant directions is kept if this long (of its size)
 _DOMINANT_SHARE = 0.15  # a dominant direction holds this share of a region's line length
+_MIN_SHARE = 0.05  # a global family holds this share of the best supported one's length at least
+_MIN_FILL = 0.85  # a contour filling this share of its bounding rectangle is a rectangle
 _IN_PLANE_DEG = 3.0  # a global direction this close to a region's plane is one of its directions
 
 
@@ -20,10 +22,12 @@ def _undirected_angle(theta: np.ndarray, ref: np.ndarray) -> np.ndarray:
 
 
 def dominant_directions(segments: np.ndarray, max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((F, 3) unit directions, (F,) support: summed length) of the families of (N, 6) segments.
+    """Returns ((F, 3) unit directions, (F,) support: summed length) of the major families of (N, 6)
+    segments.
 
     Greedy, longest first: a seed takes every free segment within max_angle_deg; the family's direction is
     the principal axis of its members' directions weighted by length^2 (long lines are the exact ones).
+    Families holding less than _MIN_SHARE of the best supported one are left out.
     """
     d = segments[:, 3:] - segments[:, :3]
     length = np.linalg.norm(d, axis=1)
@@ -41,7 +45,10 @@ def dominant_directions(segments: np.ndarray, max_angle_deg: float) -> tuple[np.
         scatter = (d[members] * w[:, None]).T @ d[members]
         dirs.append(np.linalg.eigh(scatter)[1][:, -1])
         support.append(length[members].sum())
-    return np.array(dirs).reshape(-1, 3), np.array(support)
+    # the rest are chance directions (raster diagonals, clutter): which of them exist is a matter of
+    # rounding, and no line should take their direction
+    major = np.array(support) >= _MIN_SHARE * max(support, default=0.0)
+    return np.array(dirs).reshape(-1, 3)[major], np.array(support)[major]
 
 
 def snap_to_families(
@@ -131,23 +138,41 @@ def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
     return out
 
 
-def box_lines(uv: np.ndarray, basis: np.ndarray, families: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
-    """Returns (4, 4) or (0, 4) 2D sides of the rectangle round a region's (n, 2) points whose sides follow
-    its best supported in-plane family (plane axes (2, 3) ``basis``) and the perpendicular to it.
+def box_lines(
+    outlines: list[np.ndarray],
+    basis: np.ndarray,
+    families: tuple[np.ndarray, np.ndarray],
+    min_fill: float = _MIN_FILL,
+) -> np.ndarray:
+    """Returns (4 B, 4) 2D sides of the rectangles round each of B (n, 2) in-plane point sets (a region's
+    contours, outer and hole) whose sides follow the region's best supported in-plane family (plane axes
+    (2, 3) ``basis``) and the perpendicular to it.
 
-    A small region (a window pane) spans a few raster cells only, too few for its contour's runs to give
-    its sides; man-made regions are often rectangles, and a side the points do not follow is dropped by
-    the edge refinement.
+    A small region (a window pane, a ledge strip) or hole (a window) spans a few raster cells only, too
+    few for its contour's runs to give its sides; man-made outlines are often rectangles, and a side the
+    points do not follow is dropped by the edge refinement. Closed outlines filling less than min_fill of
+    their rectangle are no rectangles (a circle, a ragged shadow) and give none; 0 takes every point set.
     """
     dirs, support = families
     flat = dirs @ basis.T
     in_plane = np.linalg.norm(flat, axis=1) >= np.cos(np.radians(_IN_PLANE_DEG))
-    if len(uv) < 3 or not in_plane.any():
+    if not outlines or not in_plane.any():
         return np.zeros((0, 4))
     best = np.flatnonzero(in_plane)[np.argmax(support[in_plane])]
     d1 = flat[best] / np.linalg.norm(flat[best])
     d2 = np.array([-d1[1], d1[0]])
-    s, t = uv @ d1, uv @ d2
-    (s0, s1), (t0, t1) = np.percentile(s, [0.2, 99.8]), np.percentile(t, [0.2, 99.8])
-    corners = np.outer([s0, s1, s1, s0], d1) + np.outer([t0, t0, t1, t1], d2)
-    return np.concatenate([corners, np.roll(corners, -1, axis=0)], axis=1)
+    out = []
+    for xy in outlines:
+        s, t = xy @ d1, xy @ d2
+        if min_fill > 0 and _area(xy) < min_fill * np.ptp(s) * np.ptp(t):
+            continue
+        corners = np.outer([s.min(), s.max(), s.max(), s.min()], d1)
+        corners += np.outer([t.min(), t.min(), t.max(), t.max()], d2)
+        out.append(np.concatenate([corners, np.roll(corners, -1, axis=0)], axis=1))
+    return np.concatenate([np.zeros((0, 4)), *out])
+
+
+def _area(xy: np.ndarray) -> float:
+    """Returns the area enclosed by the (n, 2) closed polygon (shoelace formula)."""
+    x, y = xy[:, 0], xy[:, 1]
+    return 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))

@@ -17,7 +17,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from .config import Lines3DConfig
-from .contours import image_lines, plane_basis, region_image
+from .contours import image_contours, image_lines, plane_basis, region_image
 from .creases import crease_segments
 from .edge_refine import refine_edges
 from .errors import InvalidInputError
@@ -27,7 +27,6 @@ from .planes import Planes, segment_planes, voxel_downsample
 logger = logging.getLogger(__name__)
 
 _BESIDE_DEPTH_M = 0.3  # loose points this far off a region's plane can meet it at an edge
-_BESIDE_MIN_DEPTH_M = 0.01  # ... and this far at least (range noise): closer ones are on the plane
 _CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
 
 
@@ -132,12 +131,14 @@ class Region(NamedTuple):
 
 
 class Frame(NamedTuple):
-    """A region in its plane: (2, 3) in-plane axes, (n, 2) points, (k, 4) candidate lines, raster cell."""
+    """A region in its plane: (2, 3) in-plane axes, (n, 2) points, (k, 4) candidate lines, raster cell,
+    the raster's contours as (m, 2) in-plane pixel centres."""
 
     basis: np.ndarray
     uv: np.ndarray
     lines: np.ndarray
     cell: float
+    outlines: list[np.ndarray]
 
 
 def candidates(points: np.ndarray, region: Region, config: Lines3DConfig) -> Frame:
@@ -146,9 +147,14 @@ def candidates(points: np.ndarray, region: Region, config: Lines3DConfig) -> Fra
     basis = plane_basis(region.normal)
     uv = (points - region.centroid) @ basis.T
     image, lo, cell = region_image(uv, region.cell, config)
-    lines2d = image_lines(image, config.min_length_m / cell, config)
+    contours, _ = image_contours(image)
+    lines2d = image_lines(image, contours, config.min_length_m / cell, config)
     uv_lines = (lo + (lines2d.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
-    return Frame(basis, uv, uv_lines, cell)
+    # the contours (outer and hole) that could hold two parallel edges of the shortest length
+    outlines = [
+        lo + (c.reshape(-1, 2) + 0.5) * cell for c in contours if len(c) * cell >= 4 * config.min_length_m
+    ]
+    return Frame(basis, uv, uv_lines, cell, outlines)
 
 
 def to_world(lines: np.ndarray, region: Region, basis: np.ndarray) -> np.ndarray:
@@ -169,7 +175,10 @@ def contour_segments(
     band = 2.0 * frame.cell
     size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
     lines, fixed = snap_to_families(frame.lines, frame.basis, families, config.snap_angle_deg)
-    box = box_lines(frame.uv, frame.basis, families)
+    # the rectangles round the region's points and round its rectangular contours
+    box = np.concatenate(
+        [box_lines([frame.uv], frame.basis, families, 0.0), box_lines(frame.outlines, frame.basis, families)]
+    )
     raw = np.concatenate([frame.lines, box])
     lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
     near = _beside_points(loose, region, frame.basis, lines, band)
@@ -197,7 +206,7 @@ def _beside_points(
     idx = np.unique(np.fromiter(itertools.chain.from_iterable(found), np.int64))
     rel = loose.data[idx] - region.centroid
     depth = rel @ region.normal
-    keep = (np.abs(depth) <= _BESIDE_DEPTH_M) & (np.abs(depth) >= _BESIDE_MIN_DEPTH_M)
+    keep = np.abs(depth) <= _BESIDE_DEPTH_M
     return np.c_[rel[keep] @ basis.T, depth[keep]]
 
 
