@@ -128,10 +128,14 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
     the fullest cell's votes are left out (a clear winner needs no rivals checked; repeated structure
     gives many full cells, and they all are), and so are cells beyond as many as the fullest has votes.
     """
-    scaled = (-T @ R) / cell  # camera centres -R^T t (world frame), in cells
+    # camera centres -R^T t (world frame), in cells; in place: fresh large arrays cost page faults
+    scaled = T @ R
+    np.negative(scaled, out=scaled)
+    scaled /= cell
     found, counts = [], []
+    buffers = np.empty_like(scaled), np.empty(scaled.shape, dtype=np.int64)
     for shift in (0.0, 0.5):
-        mean, count = _fullest_cells(T, _cell_keys(scaled, shift), top)
+        mean, count = _fullest_cells(T, _cell_keys(scaled, shift, buffers), top)
         found.append(mean)
         counts.append(count)
     T_all, c_all = np.concatenate(found), np.concatenate(counts)
@@ -148,17 +152,20 @@ def vote_cells(T: np.ndarray, R: np.ndarray, cell: float, top: int, min_fraction
     return T_all[kept[:top]]
 
 
-def _cell_keys(scaled: np.ndarray, shift: float) -> np.ndarray:
-    """Returns (H,) int64 keys of the grid cells (shifted by shift cells) of points (H, 3) in cell units."""
+def _cell_keys(scaled: np.ndarray, shift: float, buffers: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """Returns (H,) int64 keys of the grid cells (shifted by shift cells) of points (H, 3) in cell units.
+
+    buffers: (H, 3) float64 and int64 scratch arrays.
+    """
     half = 1 << (_KEY_BITS - 1)
-    g = scaled + shift
+    g, gi = buffers
+    np.add(scaled, shift, out=g)
     np.floor(g, out=g)
     np.clip(g, -half + 1, half - 1, out=g)
-    gi = g.astype(np.int64)
+    np.copyto(gi, g, casting="unsafe")
     # each coordinate + half lies in [1, 2^20 - 1]: packing them is the sum of the shifted fields
-    key = gi[:, 0] << (2 * _KEY_BITS)
-    key += gi[:, 1] << _KEY_BITS
-    key += gi[:, 2]
+    np.left_shift(gi, np.array([2 * _KEY_BITS, _KEY_BITS, 0]), out=gi)
+    key = gi.sum(axis=1)
     key += half * ((1 << (2 * _KEY_BITS)) + (1 << _KEY_BITS) + 1)
     return key
 
@@ -170,9 +177,10 @@ def _fullest_cells(T: np.ndarray, key: np.ndarray, top: int) -> tuple[np.ndarray
     buckets with ``least`` votes are sorted; that is exact once ``top`` of their cells have ``least`` votes
     (every cell at least as full as the top-th is then among them, wholly).
     """
-    bits = int(np.clip(np.ceil(np.log2(max(len(key), 1))) + 1, 10, 18))
-    bucket = ((key.view(np.uint64) * np.uint64(0x9E3779B97F4A7C15)) >> np.uint64(64 - bits)).astype(np.intp)
-    votes = np.bincount(bucket, minlength=1 << bits)[bucket]  # Fibonacci hashing: spreads nearby keys
+    bits = int(np.clip(np.ceil(np.log2(max(len(key), 1))) - 1, 10, 16))  # ~2 votes a bucket: a small table
+    bucket = key.view(np.uint64) * np.uint64(0x9E3779B97F4A7C15)  # Fibonacci hashing: spreads nearby keys
+    bucket >>= np.uint64(64 - bits)
+    votes = np.bincount(bucket.view(np.int64), minlength=1 << bits).take(bucket.view(np.int64))
     for least in (4, 2, 1):
         rows = np.flatnonzero(votes >= least) if least > 1 else np.arange(len(key))
         found = _ranked_cells(T, key, rows, top)
