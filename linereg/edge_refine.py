@@ -98,12 +98,13 @@ def _beside_pairs(beside: np.ndarray | None, geometry: tuple[np.ndarray, ...], b
 def _near_pairs(
     tree: cKDTree, a: np.ndarray, d: np.ndarray, length: np.ndarray, band: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((q,) line, (q,) point) distinct pairs of tree points within 1.5 band of samples taken every
-    band along each line."""
+    """Returns ((q,) line, (q,) point) distinct pairs of tree points within hypot(band, band / 2) of samples
+    taken every band along each line: all points within band of it, and a few more."""
     count = np.ceil((length + band) / band).astype(np.int64)
     line = np.repeat(np.arange(len(a)), count)
     step = (np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)) * band
-    found = tree.query_ball_point(a[line] + step[:, None] * d[line], 1.5 * band, return_sorted=False)
+    radius = float(np.hypot(band, 0.5 * band))
+    found = tree.query_ball_point(a[line] + step[:, None] * d[line], radius, return_sorted=False)
     sizes = np.fromiter(map(len, found), np.int64, len(found))
     point = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
     keys = np.unique(np.repeat(line, sizes) * len(tree.data) + point)

@@ -16,6 +16,7 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from .collinear import drop_near, merge_collinear
 from .config import Lines3DConfig
 from .contours import image_contours, image_lines, plane_basis, region_image
 from .creases import crease_segments
@@ -23,6 +24,8 @@ from .edge_refine import refine_edges
 from .errors import InvalidInputError
 from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
 from .planes import Planes, segment_planes, voxel_downsample
+
+__all__ = ["check_points", "extract", "lines_from_planes", "merge_collinear"]
 
 logger = logging.getLogger(__name__)
 
@@ -101,27 +104,6 @@ def check_points(points: object) -> np.ndarray:
     return arr
 
 
-def drop_near(
-    segments: np.ndarray, reference: np.ndarray, distance: np.ndarray, angle_deg: float
-) -> np.ndarray:
-    """Returns the (k, 6) segments that do not run along a reference segment (within (k,) ``distance``
-    and angle_deg): a region's contour along a crease is the crease's intersection line, only less exact."""
-    if len(segments) == 0 or len(reference) == 0:
-        return segments
-    distance = np.asarray(distance)[:, None]
-    r0, r1 = reference[:, :3], reference[:, 3:]
-    rlen = np.linalg.norm(r1 - r0, axis=1)
-    rdir = (r1 - r0) / rlen[:, None]
-    near = np.ones((len(segments), len(reference)), dtype=bool)
-    for end in (segments[:, :3], segments[:, 3:]):  # both endpoints within distance of the reference
-        t = np.clip(np.einsum("srj,rj->sr", end[:, None] - r0[None], rdir), -distance, rlen + distance)
-        near &= np.linalg.norm(end[:, None] - r0[None] - t[..., None] * rdir[None], axis=2) <= distance
-    sdir = segments[:, 3:] - segments[:, :3]
-    sdir /= np.linalg.norm(sdir, axis=1, keepdims=True)
-    near &= np.abs(sdir @ rdir.T) >= np.cos(np.radians(angle_deg))
-    return segments[~near.any(axis=1)]
-
-
 class Region(NamedTuple):
     """One planar region: unit normal (3,), centroid (3,), raster cell (m)."""
 
@@ -197,53 +179,16 @@ def _beside_points(
         return np.zeros((0, 3))
     ends = uv_lines.reshape(-1, 2, 2)
     length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
-    count = np.ceil(length / band).astype(np.int64) + 1
+    step = _BESIDE_DEPTH_M  # samples this far apart along a line cover a band and this depth with
+    count = np.ceil(length / step).astype(np.int64) + 1
+    radius = float(np.sqrt(band**2 + _BESIDE_DEPTH_M**2 + (0.5 * step) ** 2))
     line = np.repeat(np.arange(len(ends)), count)
     frac = (np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)) / (count[line] - 1)
     uv = ends[line, 0] + frac[:, None] * (ends[line, 1] - ends[line, 0])
     samples = region.centroid + uv @ basis
-    found = loose.query_ball_point(samples, float(np.hypot(2.0 * band, _BESIDE_DEPTH_M)), return_sorted=False)
+    found = loose.query_ball_point(samples, radius, return_sorted=False)
     idx = np.unique(np.fromiter(itertools.chain.from_iterable(found), np.int64))
     rel = loose.data[idx] - region.centroid
     depth = rel @ region.normal
     keep = np.abs(depth) <= _BESIDE_DEPTH_M
     return np.c_[rel[keep] @ basis.T, depth[keep]]
-
-
-def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig) -> np.ndarray:
-    """Returns (K, 6) segments with collinear, overlapping or nearly touching pieces merged into one.
-
-    Seeds go by (priority, longest first); a seed keeps its own line and grows to cover the extent of
-    every segment within collinear_angle_deg, collinear_distance_m of it and collinear_gap_m along it.
-    """
-    if len(segments) == 0:
-        return np.zeros((0, 6))
-    p, q = segments[:, :3], segments[:, 3:]
-    lengths = np.linalg.norm(q - p, axis=1)
-    keep = lengths > 1e-9
-    p, q, lengths, priority = p[keep], q[keep], lengths[keep], priority[keep]
-    dirs = (q - p) / lengths[:, None]
-    cos_thr = np.cos(np.radians(config.collinear_angle_deg))
-    free = np.ones(len(p), dtype=bool)
-    out = []
-    for i in np.lexsort((-lengths, priority)):
-        if not free[i]:
-            continue
-        free[i] = False
-        t0, t1 = 0.0, lengths[i]
-        cand = np.flatnonzero(free & (np.abs(dirs @ dirs[i]) >= cos_thr))
-        tp, tq = (p[cand] - p[i]) @ dirs[i], (q[cand] - p[i]) @ dirs[i]
-        dp = np.linalg.norm(p[cand] - p[i] - np.outer(tp, dirs[i]), axis=1)
-        dq = np.linalg.norm(q[cand] - p[i] - np.outer(tq, dirs[i]), axis=1)
-        close = (dp <= config.collinear_distance_m) & (dq <= config.collinear_distance_m)
-        cand, lo, hi = cand[close], np.minimum(tp, tq)[close], np.maximum(tp, tq)[close]
-        grew = True
-        while grew:  # absorbing a piece may bring the next one within the gap
-            take = free[cand] & (lo <= t1 + config.collinear_gap_m) & (hi >= t0 - config.collinear_gap_m)
-            grew = bool(take.any())
-            if grew:
-                t0, t1 = min(t0, lo[take].min()), max(t1, hi[take].max())
-                free[cand[take]] = False
-        if t1 - t0 >= config.min_length_m:
-            out.append(np.r_[p[i] + t0 * dirs[i], p[i] + t1 * dirs[i]])
-    return np.array(out).reshape(-1, 6)
