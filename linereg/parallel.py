@@ -59,7 +59,7 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
     assigned = _assign(d, directions, cos_thr, usable)
     labels = np.where(assigned >= 0, assigned, labels)
     directions = refit_directions(d, lengths**2, labels, directions, largest=True)
-    return sort_clusters(directions, labels, lengths, config.min_lines, config.top_k)
+    return sort_clusters(directions, labels, lengths, config.min_lines, config.top_k, diverse=True)
 
 
 def tolerance_rad(lengths: np.ndarray, config: ParallelConfig) -> np.ndarray:
@@ -203,15 +203,48 @@ def canonical_sign(directions: np.ndarray) -> np.ndarray:
 
 
 def sort_clusters(
-    directions: np.ndarray, labels: np.ndarray, lengths: np.ndarray, min_lines: int, top_k: int
+    directions: np.ndarray,
+    labels: np.ndarray,
+    lengths: np.ndarray,
+    min_lines: int,
+    top_k: int,
+    diverse: bool = False,
 ) -> DirectionClusters:
-    """Returns clusters with >= ``min_lines`` members, by summed member length descending, at most ``top_k``."""
+    """Returns clusters with >= ``min_lines`` members, by summed member length descending, at most ``top_k``.
+
+    ``diverse``: which ``top_k`` are kept is decided by ``diverse_order`` (support times how far a direction
+    is from those already kept), then they are sorted by support as always.
+    """
     k = len(directions)
     assigned = labels >= 0
     support = np.bincount(labels[assigned], weights=lengths[assigned], minlength=k)
     count = np.bincount(labels[assigned], minlength=k)
-    order = [c for c in np.argsort(-support, kind="stable") if count[c] >= min_lines][:top_k]
+    eligible = np.array(
+        [c for c in np.argsort(-support, kind="stable") if count[c] >= min_lines], dtype=np.int64
+    )
+    if diverse and len(eligible) > top_k:
+        chosen = eligible[diverse_order(directions[eligible], support[eligible], top_k)]
+        eligible = chosen[np.argsort(-support[chosen], kind="stable")]
+    order = list(eligible[:top_k])
     remap = np.full(k + 1, -1, dtype=np.int64)  # remap[-1] stays -1 for unassigned segments
     remap[order] = np.arange(len(order))
     directions = canonical_sign(directions[order].reshape(-1, 3))
     return DirectionClusters(directions, remap[labels], support[order].astype(np.float64))
+
+
+def diverse_order(directions: np.ndarray, support: np.ndarray, count: int) -> np.ndarray:
+    """Returns (<= count,) int64 indices of (K, 3) sign-free directions picked greedily: the strongest, then
+    each time the one with the most ``support * sin(angle to the nearest picked)``.
+
+    A direction a few degrees from one already picked adds no rotational information (the rotation stage
+    cannot pair near-parallel directions), however long its members: on a LiDAR street map the ground's
+    scan-ring contours give several near-horizontal clusters that would push the vertical one out.
+    """
+    picked = [int(np.argmax(support))] if len(support) else []
+    sine = np.ones(len(support))
+    while 0 < len(picked) < min(count, len(support)):
+        cos = np.abs(directions @ directions[picked[-1]])
+        sine = np.minimum(sine, np.sqrt(np.maximum(1.0 - cos**2, 0.0)))
+        gain = np.where(np.isin(np.arange(len(support)), picked), -1.0, support * sine)
+        picked.append(int(np.argmax(gain)))
+    return np.array(picked, dtype=np.int64)

@@ -3,7 +3,7 @@ import pytest
 
 from linereg.config import ParallelConfig
 from linereg.errors import InvalidInputError
-from linereg.parallel import parallel_clusters, tolerance_rad
+from linereg.parallel import diverse_order, parallel_clusters, tolerance_rad
 
 
 def unit(v) -> np.ndarray:
@@ -139,3 +139,25 @@ def test_degenerate_inputs():
 def test_bad_input(bad):
     with pytest.raises(InvalidInputError):
         parallel_clusters(bad)
+
+
+def test_near_parallel_clusters_do_not_push_out_a_distinct_direction(rng):
+    # a street map: long ground contours along x and along a direction 20 degrees off it outweigh the short
+    # vertical edges; the vertical is kept among the top 3 because it adds what the others cannot
+    x, diagonal, cross, up = unit([[1, 0, 0], [np.cos(0.35), np.sin(0.35), 0], [0, 1, 0], [0, 0, 1]])
+    lines3d, _ = segments_along(rng, [x, diagonal, cross, up], [60, 40, 40, 40], length_m=(1.5, 2.5))
+    shorter_up = np.abs(lines3d[:, 5] - lines3d[:, 2]) > 1.0  # the vertical segments: make them short
+    mid = 0.5 * (lines3d[shorter_up, :3] + lines3d[shorter_up, 3:])
+    half = np.array([0.0, 0.0, 0.5])
+    lines3d[shorter_up] = np.c_[mid - half, mid + half]
+    clusters = parallel_clusters(lines3d)
+    assert len(clusters) == 3
+    assert min(angle_deg(d, up) for d in clusters.directions) < 1.0
+    assert np.all(np.diff(clusters.support) <= 0)  # still strongest first
+
+
+def test_diverse_order():
+    directions = unit([[1, 0, 0], [1, 0.05, 0], [0, 1, 0], [0, 0, 1]])
+    np.testing.assert_array_equal(diverse_order(directions, np.array([10.0, 9.0, 5.0, 4.0]), 3), [0, 2, 3])
+    np.testing.assert_array_equal(diverse_order(directions, np.array([10.0, 9.0, 5.0, 4.0]), 9), [0, 2, 3, 1])
+    assert len(diverse_order(np.zeros((0, 3)), np.zeros(0), 3)) == 0
