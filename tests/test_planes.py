@@ -7,7 +7,8 @@ import pytest
 
 import linereg.voxels as voxels_module
 from linereg.config import Lines3DConfig
-from linereg.planes import _candidates, _nearest, segment_planes
+from linereg.planes import segment_planes
+from linereg.regions import _candidates, _nearest
 from linereg.voxels import (
     AROUND,
     FORWARD,
