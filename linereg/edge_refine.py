@@ -98,17 +98,20 @@ def _beside_pairs(beside: np.ndarray | None, geometry: tuple[np.ndarray, ...], b
 def _near_pairs(
     tree: cKDTree, a: np.ndarray, d: np.ndarray, length: np.ndarray, band: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((q,) line, (q,) point) distinct pairs of tree points within hypot(band, band / 2) of samples
-    taken every band along each line: all points within band of it, and a few more."""
+    """Returns ((q,) line, (q,) point) distinct pairs of tree points near each line: all within band of it
+    along its length, and a few more (within hypot(band, band / 2) of samples taken every band)."""
     count = np.ceil((length + band) / band).astype(np.int64)
     line = np.repeat(np.arange(len(a)), count)
-    step = (np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)) * band
+    step = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)
     radius = float(np.hypot(band, 0.5 * band))
-    found = tree.query_ball_point(a[line] + step[:, None] * d[line], radius, return_sorted=False)
+    found = tree.query_ball_point(a[line] + (step * band)[:, None] * d[line], radius, return_sorted=False)
     sizes = np.fromiter(map(len, found), np.int64, len(found))
     point = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
-    keys = np.unique(np.repeat(line, sizes) * len(tree.data) + point)
-    return keys // len(tree.data), keys % len(tree.data)
+    line, step = np.repeat(line, sizes), np.repeat(step, sizes)
+    # a point is found by neighbouring samples too: it belongs to the one whose stretch holds it
+    t = np.einsum("pk,pk->p", tree.data[point] - a[line], d[line])
+    mine = np.clip(np.floor(t / band + 0.5), 0, count[line] - 1) == step
+    return line[mine], point[mine]
 
 
 def _group_min(values: np.ndarray, group: np.ndarray, num: int) -> np.ndarray:

@@ -8,7 +8,6 @@ crease, clipped to where both regions reach it -> collinear pieces merged -> bac
 
 from __future__ import annotations
 
-import itertools
 import logging
 from collections.abc import Callable
 from typing import NamedTuple
@@ -73,7 +72,7 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     # points of no large region: a reveal, a ledge's underside, too narrow to be regions themselves
     loose = planes.labels < 0
     loose[~loose] = ~large[planes.labels[~loose]]
-    loose_tree = cKDTree(points[loose]) if loose.any() else None
+    loose_points = cKDTree(points[loose])
     kept = np.flatnonzero(large)
     regions = [Region(planes.normals[r], planes.centroids[r], cells[r]) for r in kept]
     frames = [candidates(points[members[r]], reg, config) for r, reg in zip(kept, regions, strict=True)]
@@ -82,7 +81,7 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config.snap_angle_deg)
     contours, near_m = [np.zeros((0, 6))], [np.zeros(0)]
     for frame, region in zip(frames, regions, strict=True):
-        found = contour_segments(frame, region, families, loose_tree, config)
+        found = contour_segments(frame, region, families, loose_points, config)
         contours.append(found)
         near_m.append(np.full(len(found), 2.0 * frame.cell))
     contour = drop_near(np.concatenate(contours), creases, np.concatenate(near_m), 10.0)
@@ -148,12 +147,12 @@ def contour_segments(
     frame: Frame,
     region: Region,
     families: tuple[np.ndarray, np.ndarray],
-    loose: cKDTree | None,
+    loose: cKDTree,
     config: Lines3DConfig,
 ) -> np.ndarray:
     """Returns (K, 6) segments along the boundary of one planar region: candidates turned onto the global
-    direction ``families`` (``dominant_directions``), moved onto the points; ``loose`` holds the points of
-    no large region, which place edges where a narrow surface meets the region."""
+    direction ``families`` (``dominant_directions``), moved onto the points; ``loose`` (a KD-tree) holds the
+    points of no large region, which bound the edges of the region's plane or continue it."""
     band = 2.0 * frame.cell
     size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
     lines, fixed = snap_to_families(frame.lines, frame.basis, families, config.snap_angle_deg)
@@ -163,32 +162,24 @@ def contour_segments(
     )
     raw = np.concatenate([frame.lines, box])
     lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
-    near = _beside_points(loose, region, frame.basis, lines, band)
+    near = _beside_points(loose, region, frame, band)
     lines, kept = refine_edges(frame.uv, lines, band, near, fixed)
     # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
     kept[kept] = has_parallel(raw[kept], size, config.snap_angle_deg)
     return to_world(snap_directions(lines[kept], config.snap_angle_deg), region, frame.basis)
 
 
-def _beside_points(
-    loose: cKDTree | None, region: Region, basis: np.ndarray, uv_lines: np.ndarray, band: float
-) -> np.ndarray:
-    """Returns (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within _BESIDE_DEPTH_M
-    of the region's plane and about a band of its (k, 4) candidate lines."""
-    if loose is None or len(uv_lines) == 0:
+def _beside_points(loose: cKDTree, region: Region, frame: Frame, band: float) -> np.ndarray:
+    """Returns (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within _BESIDE_DEPTH_M of
+    the region's plane and a band of its points' bounding box in it."""
+    if loose.n == 0 or len(frame.uv) == 0:
         return np.zeros((0, 3))
-    ends = uv_lines.reshape(-1, 2, 2)
-    length = np.linalg.norm(ends[:, 1] - ends[:, 0], axis=1)
-    step = _BESIDE_DEPTH_M  # samples this far apart along a line cover a band and this depth with
-    count = np.ceil(length / step).astype(np.int64) + 1
-    radius = float(np.sqrt(band**2 + _BESIDE_DEPTH_M**2 + (0.5 * step) ** 2))
-    line = np.repeat(np.arange(len(ends)), count)
-    frac = (np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)) / (count[line] - 1)
-    uv = ends[line, 0] + frac[:, None] * (ends[line, 1] - ends[line, 0])
-    samples = region.centroid + uv @ basis
-    found = loose.query_ball_point(samples, radius, return_sorted=False)
-    idx = np.unique(np.fromiter(itertools.chain.from_iterable(found), np.int64))
-    rel = loose.data[idx] - region.centroid
+    lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
+    centre = region.centroid + 0.5 * (lo + hi) @ frame.basis
+    reach = float(np.sqrt(np.sum((0.5 * (hi - lo) + band) ** 2) + _BESIDE_DEPTH_M**2))
+    rel = loose.data[loose.query_ball_point(centre, reach)] - region.centroid
     depth = rel @ region.normal
-    keep = np.abs(depth) <= _BESIDE_DEPTH_M
-    return np.c_[rel[keep] @ basis.T, depth[keep]]
+    near = np.abs(depth) <= _BESIDE_DEPTH_M
+    uv = rel[near] @ frame.basis.T
+    inside = ((uv >= lo - band) & (uv <= hi + band)).all(axis=1)
+    return np.c_[uv[inside], depth[near][inside]]
