@@ -49,3 +49,16 @@ def test_cli_options():
     assert args.stages and args.plane_directions
     defaults = parser.parse_args([])
     assert not defaults.stages and not defaults.plane_directions
+
+
+def test_map_config_values():
+    from linereg.config import Lines3DConfig
+    from linereg.errors import InvalidInputError
+
+    points = np.random.default_rng(0).uniform(0, 1, (500, 3))
+    assert real.lines3d_config(None, points) == Lines3DConfig()
+    assert real.lines3d_config('{"min_length_m": 0.2}', points).min_length_m == 0.2
+    assert isinstance(real.lines3d_config("auto", points), Lines3DConfig)
+    for bad in ('{"no_such_field": 1}', "[1, 2]", "{"):
+        with pytest.raises(InvalidInputError):
+            real.lines3d_config(bad, points)

@@ -17,6 +17,8 @@ With ``--overlay``, each image gets the overlay of its estimate and one of the m
 With ``--stages``, a second table runs every stage at the true pose (``real_stages``): which one fails first.
 With ``--plane-directions``, the maps' direction clusters also hold the directions of their dominant planes
 (``plane_directions.map_clusters``; the planes are segmented a second time here, which costs seconds).
+``--map-config auto`` builds each map with ``map_profile.lines3d_config_for`` (limits from the point spacing),
+``--map-config '{"min_length_m": 0.15}'`` with those ``Lines3DConfig`` fields overridden.
 """
 
 from __future__ import annotations
@@ -140,14 +142,18 @@ def localize_one(
     return record, (image, lines2d, result)
 
 
-def build_map(cloud_path: Path, plane_directions: bool = False) -> tuple[Any, dict[str, Any]]:
-    """Returns (LineMap, record with points, segments and build seconds) of one cloud file."""
+def build_map(
+    cloud_path: Path, plane_directions: bool = False, map_config: str | None = None
+) -> tuple[Any, dict[str, Any]]:
+    """Returns (LineMap, record with points, segments and build seconds) of one cloud file; ``map_config``:
+    None (defaults), ``"auto"`` or a JSON object of ``Lines3DConfig`` fields."""
     from .. import io
     from ..linemap import LineMap
 
     start = time.perf_counter()
     points = io.read_cloud(cloud_path)
-    line_map = LineMap.build(points)
+    config = lines3d_config(map_config, points)
+    line_map = LineMap.build(points, config)
     if plane_directions:
         line_map = with_plane_directions(line_map, points)
     record = {
@@ -157,6 +163,24 @@ def build_map(cloud_path: Path, plane_directions: bool = False) -> tuple[Any, di
         "build_s": time.perf_counter() - start,
     }
     return line_map, record
+
+
+def lines3d_config(map_config: str | None, points: np.ndarray) -> Any:
+    """Returns the Lines3DConfig a ``--map-config`` value asks for (InvalidInputError if malformed)."""
+    from ..config import Lines3DConfig
+    from ..errors import InvalidInputError
+    from ..map_profile import lines3d_config_for
+
+    if map_config is None:
+        return Lines3DConfig()
+    if map_config == "auto":
+        return lines3d_config_for(points)
+    try:
+        return Lines3DConfig(**json.loads(map_config))
+    except (ValueError, TypeError) as e:
+        raise InvalidInputError(
+            f"--map-config: 'auto' or a JSON object of Lines3DConfig fields ({e})"
+        ) from None
 
 
 def with_plane_directions(line_map: Any, points: np.ndarray) -> Any:
@@ -178,6 +202,7 @@ def run_scene(
     overlay_dir: Path | None,
     stages: bool = False,
     plane_directions: bool = False,
+    map_config: str | None = None,
 ) -> dict[str, Any]:
     """Returns a scene's map records and image records; maps are built once per distinct cloud file."""
     items = read_scene(folder)
@@ -185,7 +210,7 @@ def run_scene(
     map_records, records = [], []
     for item in items:
         if item.cloud_path not in maps:
-            maps[item.cloud_path], record = build_map(item.cloud_path, plane_directions)
+            maps[item.cloud_path], record = build_map(item.cloud_path, plane_directions, map_config)
             map_records.append(record)
             print(
                 f"{folder.name}/{item.cloud_path.name}: {record['num_points']:,} points -> "
@@ -271,6 +296,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         action="store_true",
         help="add the directions of the maps' dominant planes to their direction clusters",
     )
+    parser.add_argument(
+        "--map-config",
+        default=None,
+        help="'auto' (limits from the point spacing) or a JSON object of Lines3DConfig fields",
+    )
     parser.add_argument("--max-rot-deg", type=float, default=5.0, help="success bound on R_e (default 5)")
     parser.add_argument(
         "--max-pos-m", type=float, default=0.3, help="success bound on position (default 0.3)"
@@ -289,7 +319,8 @@ def run(args: argparse.Namespace) -> int:
     bounds = (args.max_rot_deg, args.max_pos_m)
     overlay_dir = args.out if args.overlay else None
     scenes = [
-        run_scene(folder, bounds, overlay_dir, args.stages, args.plane_directions) for folder in folders
+        run_scene(folder, bounds, overlay_dir, args.stages, args.plane_directions, args.map_config)
+        for folder in folders
     ]
     records = [r for s in scenes for r in s["images"]]
     print(report.format_table([m for s in scenes for m in s["maps"]], MAP_COLUMNS))
@@ -308,6 +339,7 @@ def run(args: argparse.Namespace) -> int:
         "data": str(data),
         "bounds": {"rotation_deg": bounds[0], "position_m": bounds[1]},
         "plane_directions": args.plane_directions,
+        "map_config": args.map_config,
         "scenes": scenes,
     }
     path = report.write_json_atomic(args.out / "results.json", results)
