@@ -169,8 +169,9 @@ def _cell_keys(scaled: np.ndarray, shift: float, buffers: tuple[np.ndarray, np.n
     np.clip(g, -half + 1, half - 1, out=g)
     np.copyto(gi, g, casting="unsafe")
     # each coordinate + half lies in [1, 2^20 - 1]: packing them is the sum of the shifted fields
-    np.left_shift(gi, np.array([2 * _KEY_BITS, _KEY_BITS, 0]), out=gi)
-    key = gi.sum(axis=1)
+    key = gi[:, 0] << (2 * _KEY_BITS)
+    key += gi[:, 1] << _KEY_BITS
+    key += gi[:, 2]
     key += half * ((1 << (2 * _KEY_BITS)) + (1 << _KEY_BITS) + 1)
     return key
 
