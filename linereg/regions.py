@@ -97,8 +97,8 @@ def _assign_points(
     regions = combine_moments(voxel_fits, voxel_labels, int(voxel_labels.max()) + 1)
     # distances are |(x - c) . n|: the normals' signs do not matter, so the faster closed form does
     cen, (nrm, _) = regions.centroids, plane_fits(regions, closed_form=True)
-    table = _candidates(voxels, voxel_labels)
-    per_point = (table >= 0).sum(axis=1)[voxels.of_point]
+    table, count = _candidates(voxels, voxel_labels)
+    per_point = count[voxels.of_point]
     labels = np.full(len(points), -1, dtype=np.int64)
     # most points have one candidate region: its distance decides
     one = np.flatnonzero(per_point == 1)
@@ -117,24 +117,27 @@ def _assign_points(
     return labels
 
 
-def _candidates(voxels: Voxels, voxel_labels: np.ndarray) -> np.ndarray:
-    """Returns (V, K) int64 the distinct regions among each voxel's 27 (itself and its 26 neighbours),
-    first columns first, padded with -1."""
+def _candidates(voxels: Voxels, voxel_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((V, K) int64 the distinct regions among each voxel's 27 (itself and its 26 neighbours),
+    first columns first, padded with -1; (V,) int64 how many each voxel has)."""
     region_voxels = np.flatnonzero(voxel_labels >= 0)
-    around = neighbors(voxels, region_voxels, AROUND)
-    target = around.ravel()
-    label = np.repeat(voxel_labels[region_voxels], around.shape[1])
-    target, label = target[target >= 0], label[target >= 0]
+    around = neighbors(voxels, region_voxels, AROUND).T.ravel()  # offset-major: no transposing copy
+    label = np.tile(voxel_labels[region_voxels], len(AROUND))
+    target, label = around[around >= 0], label[around >= 0]
     # each pass writes one of the regions a voxel receives (the last write wins) and keeps the others:
     # as many passes as regions meet in a voxel (a few), no sort of the 27 x (region voxels) pairs
     columns = []
+    count = np.zeros(len(voxels.flat), dtype=np.int64)
     while len(target):
         column = np.full(len(voxels.flat), -1, dtype=np.int64)
         column[target] = label
         columns.append(column)
         rest = column[target] != label
+        count[target[~rest]] = len(columns)  # the voxels written to hold this many so far
         target, label = target[rest], label[rest]
-    return np.stack(columns, axis=1) if columns else np.full((len(voxels.flat), 1), -1, dtype=np.int64)
+    if not columns:
+        return np.full((len(voxels.flat), 1), -1, dtype=np.int64), count
+    return np.stack(columns, axis=1), count
 
 
 def _nearest(group: np.ndarray, value: np.ndarray, key: np.ndarray, num: int) -> np.ndarray:

@@ -132,7 +132,8 @@ def test_candidates_are_the_regions_around_each_voxel():
     rng = np.random.default_rng(3)
     vox = build_voxels(rng.integers(0, 6, size=(300, 3)) * 0.1 + 0.05, 0.1)
     labels = rng.integers(-1, 4, size=len(vox.flat))
-    table = _candidates(vox, labels)
+    table, count = _candidates(vox, labels)
+    np.testing.assert_array_equal(count, (table >= 0).sum(axis=1))
     around = _brute_neighbors(vox, np.arange(len(vox.flat)), AROUND)
     for v in range(len(vox.flat)):
         expected = {int(labels[u]) for u in around[v] if u >= 0 and labels[u] >= 0}
