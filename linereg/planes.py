@@ -10,8 +10,8 @@ All coordinates are local (the caller subtracts a georeferenced offset first).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from collections.abc import Callable, Iterator
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -119,10 +119,14 @@ def segment_planes(
     if (labels < 0).all():
         return _empty_planes(len(points))
     num = int(labels.max()) + 1
-    counts, cen, nrm, _ = fit_planes(points, labels, num)
-    pairs = _touching(grid, labels)
+    # the spacing's tree builds release the GIL: two threads, while this one fits the planes
+    with ThreadPoolExecutor(max_workers=2) as pool:
+        spacing = _region_spacing(points, labels, num, pool)
+        counts, cen, nrm, _ = fit_planes(points, labels, num)
+        pairs = _touching(grid, labels)
+        spacing_m = np.fromiter(spacing, dtype=np.float64, count=num)
     logger.debug("%d regions, %d touching pairs", num, len(pairs))
-    return Planes(labels, nrm, cen, counts, pairs[:, :2], _region_spacing(points, labels, num))
+    return Planes(labels, nrm, cen, counts, pairs[:, :2], spacing_m)
 
 
 def _drop_off_plane(
@@ -139,9 +143,11 @@ def _drop_off_plane(
     return out
 
 
-def _region_spacing(points: np.ndarray, labels: np.ndarray, num: int, neighbours: int = 8) -> np.ndarray:
-    """Returns (R,) float64 typical point spacing (m) of each region: k points within r of a point cover
-    pi r^2 of the plane, so r_k sqrt(pi / k) (median over up to 500 of the region's points).
+def _region_spacing(
+    points: np.ndarray, labels: np.ndarray, num: int, pool: Executor, neighbours: int = 8
+) -> Iterator[float]:
+    """Returns the (R,) typical point spacings (m) of the regions, computed on ``pool``: k points within r
+    of a point cover pi r^2 of the plane, so r_k sqrt(pi / k) (median over up to 500 of the region's points).
 
     Nearest neighbours, not points per voxel: a thin strip (a 25 cm ledge) or a region cut by voxel
     borders fills only part of its voxels, which made it look several times sparser than it is.
@@ -160,9 +166,7 @@ def _region_spacing(points: np.ndarray, labels: np.ndarray, num: int, neighbours
         dist, _ = tree.query(sample, k=k + 1)  # the first neighbour is the point itself
         return float(np.median(dist[:, -1])) * np.sqrt(np.pi / k)
 
-    # tree building and queries release the GIL: two threads use both cores of a small machine
-    with ThreadPoolExecutor(max_workers=2) as pool:
-        return np.array(list(pool.map(spacing, range(num))), dtype=np.float64)
+    return pool.map(spacing, range(num))
 
 
 def _voxel_labels(of_point: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
