@@ -15,6 +15,7 @@ from scipy.spatial import cKDTree
 _MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
 _MIN_BIN_POINTS = 6  # the maximum of fewer points says little
 _MIN_LINE_POINTS = 10
+_LEVEL_M = 0.015  # points this much farther inside than the last one are on another row of the scan
 _ON_PLANE_M = 0.01  # points of no region this close to a region's plane lie on it (range noise)
 _MAX_GOING_ON = 0.2  # such points beyond an edge, as many as this share of the region's points along it
 
@@ -144,6 +145,13 @@ def _edge_lines(
     top = -_group_min(-o, inverse, len(key))
     centre = np.bincount(inverse, t) / count
     edge = top + (top + band) / count
+    # a scanner samples in rows and columns: the last one lies on average half their spacing inside the
+    # edge, the spacing being the gap down to the next line of points (typical over the line's bins)
+    lower = o < top[inverse] - _LEVEL_M
+    second = -_group_min(-o[lower], inverse[lower], len(key))
+    has = np.isfinite(second)
+    gap = _group_median((top - second)[has], owner[has], k)
+    edge = np.fmax(edge, top + 0.5 * gap[owner])
     # a point off the region beyond its last one bounds the edge: the surface ends before the point (the
     # other surface is behind it, seen through the gap, or meets it there)
     first = _first_beyond(off, key, top, t_lo, num_bins, band)
