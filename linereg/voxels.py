@@ -41,6 +41,9 @@ def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
     """Returns the occupied voxels of size ``voxel_m`` of (P, 3) float64 local points."""
     # per coordinate (contiguous columns are several times faster than (P, 3) reductions); floor is
     # monotonic, so the extremes of the keys are the keys of the extremes
+    if len(points) == 0:
+        none = np.zeros(0, dtype=np.int64)
+        return Voxels(np.zeros((0, 3), np.int64), none, np.ones(3, np.int64), none, none, voxel_m, None)
     cols = [points[:, i] for i in range(3)]
     lo = np.array([np.floor(c.min() / voxel_m) for c in cols], dtype=np.int64)
     dims = np.array([np.floor(c.max() / voxel_m) for c in cols], dtype=np.int64) - lo + 3  # -1, +1 room

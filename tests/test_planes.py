@@ -70,6 +70,7 @@ def test_voxel_downsample_gives_centroids():
     points = np.array([[0.01, 0.0, 0.0], [0.03, 0.02, 0.0], [0.5, 0.5, 0.5]])
     out = voxel_downsample(points, 0.1)
     np.testing.assert_allclose(out, [[0.02, 0.01, 0.0], [0.5, 0.5, 0.5]])
+    assert voxel_downsample(np.zeros((0, 3)), 0.1).shape == (0, 3)
 
 
 def _covariance_groups(rng):
