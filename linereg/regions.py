@@ -102,7 +102,7 @@ def _assign_points(
     labels = np.full(len(points), -1, dtype=np.int64)
     # most points have one candidate region: its distance decides
     one = np.flatnonzero(per_point == 1)
-    c = table[voxels.of_point[one], 0]
+    c = table[0, voxels.of_point[one]]
     near = plane_distances(points, one, cen, nrm, c) <= config.distance_m
     labels[one[near]] = c[near]
     # points in crease voxels: one row per (point, candidate region), the nearest plane wins
@@ -110,7 +110,7 @@ def _assign_points(
     per_point = per_point[many]
     point = np.repeat(np.arange(len(many)), per_point)
     first = np.cumsum(per_point) - per_point  # row of each point's first candidate
-    c = table[voxels.of_point[many][point], np.arange(len(point)) - first[point]]
+    c = table[np.arange(len(point)) - first[point], voxels.of_point[many][point]]
     dist = plane_distances(points, many[point], cen, nrm, c)
     dist[dist > config.distance_m] = np.inf
     labels[many] = _nearest(point, c, dist, len(many))
@@ -118,12 +118,13 @@ def _assign_points(
 
 
 def _candidates(voxels: Voxels, voxel_labels: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((V, K) int64 the distinct regions among each voxel's 27 (itself and its 26 neighbours),
-    first columns first, padded with -1; (V,) int64 how many each voxel has)."""
+    """Returns ((K, V) int64 the distinct regions among each voxel's 27 (itself and its 26 neighbours),
+    first rows first, padded with -1; (V,) int64 how many each voxel has)."""
     region_voxels = np.flatnonzero(voxel_labels >= 0)
     around = neighbors(voxels, region_voxels, AROUND).T.ravel()  # offset-major: no transposing copy
     label = np.tile(voxel_labels[region_voxels], len(AROUND))
-    target, label = around[around >= 0], label[around >= 0]
+    found = around >= 0
+    target, label = around[found], label[found]
     # each pass writes one of the regions a voxel receives (the last write wins) and keeps the others:
     # as many passes as regions meet in a voxel (a few), no sort of the 27 x (region voxels) pairs
     columns = []
@@ -136,8 +137,8 @@ def _candidates(voxels: Voxels, voxel_labels: np.ndarray) -> tuple[np.ndarray, n
         count[target[~rest]] = len(columns)  # the voxels written to hold this many so far
         target, label = target[rest], label[rest]
     if not columns:
-        return np.full((len(voxels.flat), 1), -1, dtype=np.int64), count
-    return np.stack(columns, axis=1), count
+        return np.full((1, len(voxels.flat)), -1, dtype=np.int64), count
+    return np.stack(columns), count
 
 
 def _nearest(group: np.ndarray, value: np.ndarray, key: np.ndarray, num: int) -> np.ndarray:

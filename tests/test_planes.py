@@ -134,6 +134,7 @@ def test_candidates_are_the_regions_around_each_voxel():
     vox = build_voxels(rng.integers(0, 6, size=(300, 3)) * 0.1 + 0.05, 0.1)
     labels = rng.integers(-1, 4, size=len(vox.flat))
     table, count = _candidates(vox, labels)
+    table = table.T
     np.testing.assert_array_equal(count, (table >= 0).sum(axis=1))
     around = _brute_neighbors(vox, np.arange(len(vox.flat)), AROUND)
     for v in range(len(vox.flat)):
