@@ -199,3 +199,14 @@ def test_16bit_stretch_keeps_dead_pixels_dark_and_hot_ones_bright(rng):
     gray = to_gray8(img)
     assert gray.dtype == np.uint8 and gray[5, 5] == 0 and gray[6, 6] == 255
     assert gray.max() == 255 and gray.min() == 0 and np.percentile(gray, 50) > 100  # the picture's range used
+
+
+def test_bands_see_the_same_subsampled_pixels_away_from_the_cut(rng):
+    img = polygon_image(QUAD, rng)
+    one = lsd_segments(img, LineDetectConfig(lsd_threads=1))
+    two = lsd_segments(img, LineDetectConfig(lsd_threads=2))
+    # the right edge (x ~ 470-505) is in the second band (starting near x = 300), far from the cut
+    right_one = one[np.minimum(one[:, 0], one[:, 2]) > 400]
+    right_two = two[np.minimum(two[:, 0], two[:, 2]) > 400]
+    assert len(right_one) >= 1
+    np.testing.assert_allclose(np.sort(right_one, axis=0), np.sort(right_two, axis=0), atol=1e-4)
