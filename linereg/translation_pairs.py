@@ -101,10 +101,11 @@ class Pairs:
         """
         sel = np.flatnonzero(self.combo_g >= self.num_clusters)
         j = self.members[self.starts[self.combo_g[sel]]]
-        side, bearing = take_rows(self.combo_normal, sel), take_rows(self.combo_bearing, sel)
-        p = take_rows(self.point, j)
-        axes = np.concatenate([side, bearing]).T.astype(np.float32)
-        offsets = np.r_[dot(p, side), dot(p, bearing)].astype(np.float32)
+        # (3, c) coordinate rows (the combo frames are stored so: contiguous takes)
+        side, bearing = np.take(self.combo_normal.T, sel, axis=1), np.take(self.combo_bearing.T, sel, axis=1)
+        p = np.take(self.point.T, j, axis=1)
+        axes = np.concatenate([side, bearing], axis=1).astype(np.float32)
+        offsets = np.r_[dot(p.T, side.T), dot(p.T, bearing.T)].astype(np.float32)
         return self.combo_i[sel], j, self.combo_turn[sel], axes, offsets
 
     def coplanarity(self, index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
