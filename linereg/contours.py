@@ -29,10 +29,9 @@ def region_image(uv: np.ndarray, cell: float, config: Lines3DConfig) -> tuple[np
     (n, 2) in-plane points; sampling gaps closed, holes and islands too small to hold an edge removed."""
     extent = np.ptp(uv, axis=0) if len(uv) else np.zeros(2)
     cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / _MAX_RASTER_PIXELS)))
-    # a 2-cell empty border: contours never touch the image edge; the extreme points fall mid-cell, not on
-    # a cell border where rounding would decide their cell
-    lo = uv.min(axis=0) - 2.5 * cell
-    ij = np.floor((uv - lo) / cell).astype(np.int64)
+    lo = uv.min(axis=0) - 2 * cell  # a 2-cell empty border: contours never touch the image edge
+    # the extreme points lie on a cell border by construction: a hair inside keeps rounding from deciding
+    ij = np.floor((uv - lo) / cell + 1e-6).astype(np.int64)
     image: np.ndarray = np.zeros((int(ij[:, 1].max()) + 3, int(ij[:, 0].max()) + 3), np.uint8)
     image[ij[:, 1], ij[:, 0]] = 255
     image = cv2.morphologyEx(image, cv2.MORPH_CLOSE, np.ones((3, 3), np.uint8))  # sampling gaps

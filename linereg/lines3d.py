@@ -157,9 +157,14 @@ def contour_segments(
     size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
     lines, fixed = snap_to_families(frame.lines, frame.basis, families, config.snap_angle_deg)
     # the rectangles round the region's points and round its rectangular contours
-    box = np.concatenate(
-        [box_lines([frame.uv], frame.basis, families, 0.0), box_lines(frame.outlines, frame.basis, families)]
-    )
+    box = np.zeros((0, 4))
+    if config.rectangles:
+        box = np.concatenate(
+            [
+                box_lines([frame.uv], frame.basis, families, 0.0),
+                box_lines(frame.outlines, frame.basis, families),
+            ]
+        )
     raw = np.concatenate([frame.lines, box])
     lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
     near = _beside_points(loose, region, frame, band)
