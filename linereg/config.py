@@ -39,7 +39,7 @@ class Lines3DConfig:
     collinear_gap_m: float = 0.15  # ... and this close along it are merged
     # sides of the direction-aligned rectangles round each region and its rectangular holes are candidate
     # edges too (window panes, ledge strips, window holes span too few raster cells for their contours):
-    # recall 72 % instead of 65 % on the demo scan, but the demo then localizes 6/10 photos, not 10/10
+    # recall 72 % instead of 63 % on the demo scan, but the demo then localizes 6/10 photos, not 10/10
     rectangles: bool = False
 
 

@@ -2,8 +2,11 @@
 detection from unorganized point cloud"), the extractor the paper uses (section IV-A).
 
 Steps: shift to a local frame -> planar regions (``planes.segment_planes``) -> each region rasterised in its
-own plane, its contours traced and cut into straight runs -> intersection lines where two planes meet at a
-crease, clipped to where both regions reach it -> collinear pieces merged -> back to the input frame.
+own plane, its contours traced and cut into straight runs (``contours``) -> the runs of every region turned
+onto the scene's dominant directions (``line_families``) and moved onto where the region's points end,
+bounded by the points of no region beyond (``edge_refine``) -> intersection lines where two planes meet at a
+crease, clipped to where both regions reach it (``creases``) -> collinear pieces merged (``collinear``) ->
+back to the input frame.
 """
 
 from __future__ import annotations

@@ -1,6 +1,6 @@
 """3D line extraction: time and peak memory on a ~1 M-point demo scan, recall of the building's true edges.
 
-``linereg bench lines3d [--points 1000000] [--seed 0] [--out DIR]``.
+``linereg bench lines3d [--points 1000000] [--seed 0] [--rectangles] [--out DIR]``.
 
 The demo building is scanned (``demo_scene``'s simulated terrestrial scanner, ``DEMO_SCAN``) and the scan
 is subsampled to ``--points`` points (the scanner's own ``target_points``; a denser request than its
@@ -37,20 +37,24 @@ ANGLE_DEG = 2.0
 STEP_M = 0.02
 MIN_COVER = 0.5
 SCANNED_RADIUS_M = 0.15  # the scan's point spacing reaches ~13 cm at 30 m (0.25 deg rays)
-_CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(sys.argv[1], sys.argv[2])"
+_CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(sys.argv[1], sys.argv[2], sys.argv[3])"
 
 
-def child_main(points_path: str, segments_path: str) -> None:
-    """Runs ``extract`` on the points of an .npy file; prints JSON (seconds, RSS KiB), saves the segments."""
+def child_main(points_path: str, segments_path: str, overrides: str = "{}") -> None:
+    """Runs ``extract`` on the points of an .npy file with Lines3DConfig fields overridden by a JSON
+    object; prints JSON (seconds, RSS KiB), saves the segments."""
     import resource
     import time
+    from dataclasses import replace
 
+    from ..config import Lines3DConfig
     from ..lines3d import extract
 
     points = np.load(points_path)
+    config = replace(Lines3DConfig(), **json.loads(overrides))
     before = resource.getrusage(resource.RUSAGE_SELF)
     start = time.perf_counter()
-    segments = extract(points)
+    segments = extract(points, config)
     seconds = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_SELF)
     cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
@@ -60,15 +64,18 @@ def child_main(points_path: str, segments_path: str) -> None:
     print(json.dumps(stats | {"peak_rss_kib": after.ru_maxrss}))
 
 
-def extract_in_child(points: np.ndarray) -> tuple[np.ndarray, dict[str, Any]]:
-    """Returns ((M, 6) segments, {seconds, cpu_seconds, rss_before_gb, peak_gb}) of ``extract`` in a child."""
+def extract_in_child(
+    points: np.ndarray, overrides: dict[str, Any] | None = None
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Returns ((M, 6) segments, {seconds, cpu_seconds, rss_before_gb, peak_gb}) of ``extract`` in a child,
+    with Lines3DConfig fields ``overrides``."""
     from ..errors import LineregError
 
     with tempfile.TemporaryDirectory(prefix="linereg-bench-") as tmp:
         points_path, segments_path = Path(tmp) / "points.npy", Path(tmp) / "segments.npy"
         np.save(points_path, points)
         proc = subprocess.run(
-            [sys.executable, "-c", _CHILD, str(points_path), str(segments_path)],
+            [sys.executable, "-c", _CHILD, str(points_path), str(segments_path), json.dumps(overrides or {})],
             capture_output=True,
             text=True,
         )
@@ -208,6 +215,9 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="demo scene seed (default 0)")
     parser.add_argument("--min-length-m", type=float, default=0.5, help="true edges longer than this count")
     parser.add_argument("--out", type=Path, default=Path("bench-results/lines3d"), help="output directory")
+    parser.add_argument(
+        "--rectangles", action="store_true", help="Lines3DConfig(rectangles=True): rectangle candidates too"
+    )
     parser.set_defaults(func=run)
 
 
@@ -222,7 +232,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"extracting 3D lines from {len(points):,} points in a child process ...", file=sys.stderr, flush=True
     )
-    segments, cost = extract_in_child(points)
+    overrides = {"rectangles": True} if args.rectangles else {}
+    segments, cost = extract_in_child(points, overrides)
     rows = recall_table(building, points, segments, args.min_length_m)
     prec = precision(building, segments, args.min_length_m)
     print(report.format_table(rows, RECALL_COLUMNS))
@@ -257,7 +268,8 @@ def run(args: argparse.Namespace) -> int:
     )
     results = {
         "benchmark": "lines3d",
-        "options": {"points": args.points, "seed": args.seed, "min_length_m": args.min_length_m},
+        "options": {"points": args.points, "seed": args.seed, "min_length_m": args.min_length_m}
+        | {"config": overrides},
         "criterion": {"distance_m": DISTANCE_M, "angle_deg": ANGLE_DEG, "min_cover": MIN_COVER},
         "targets": TARGETS,
         "num_points": len(points),
