@@ -187,9 +187,10 @@ class LineDetectConfig:
     max_work_pixels: int = (
         600_000  # bigger images are subsampled further so LSD sees at most this many pixels
     )
-    # LSD runs on this many overlapping bands of the image in parallel threads (merging rejoins segments
-    # cut at a band's edge); 0 = cv2.getNumThreads() (so cv2.setNumThreads(1) makes it serial), at most 4
-    lsd_threads: int = 0
+    # LSD runs on this many overlapping bands of the image (merging rejoins segments cut at a band's edge),
+    # in parallel threads when OpenCV may use them (cv2.getNumThreads() > 1), else one after the other; a
+    # fixed count, so that an image gives the same segments on any machine, in a worker or not
+    lsd_bands: int = 2
     merge_angle_deg: float = 3.0  # fragments whose directions differ by more are not one line
     merge_offset_px: float = 1.5  # every fragment endpoint must lie within this of the merged line
     merge_gap_frac: float = 0.02  # largest gap bridged, fraction of the image diagonal (paper: 60 px)

@@ -105,7 +105,7 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
 
     LSD subsamples by ``lsd_scale`` itself, further for images above ``max_work_pixels``; below half
     size its Gaussian gets costly, so very large images are first halved by area averaging (the
-    endpoints are scaled back). LSD is single-threaded, so the image is cut into ``lsd_threads``
+    endpoints are scaled back). LSD is single-threaded, so the image is cut into ``lsd_bands``
     overlapping bands detected in parallel (OpenCV releases the GIL); a segment cut at a band's edge
     comes back as overlapping pieces that ``merge_collinear`` joins.
     """
@@ -141,8 +141,8 @@ _BAND_OVERLAP_PX = 12.0
 
 
 def lsd_bands(config: LineDetectConfig) -> int:
-    """Returns how many bands LSD runs on: ``config.lsd_threads``, or OpenCV's thread count (at most 4)."""
-    return config.lsd_threads if config.lsd_threads > 0 else max(1, min(cv2.getNumThreads(), 4))
+    """Returns how many bands LSD runs on (``config.lsd_bands``, at least 1)."""
+    return max(1, config.lsd_bands)
 
 
 def _lsd_band(small: np.ndarray, scale: float, axis: int, span: tuple[int, int], overlap: int) -> np.ndarray:
@@ -170,7 +170,8 @@ def _lsd_band(small: np.ndarray, scale: float, axis: int, span: tuple[int, int],
 
 
 def _run_parallel(run: Callable[[int], None], n: int) -> None:
-    """Calls ``run(0) .. run(n - 1)``, all but the first in threads of their own; re-raises their errors.
+    """Calls ``run(0) .. run(n - 1)``, all but the first in threads of their own when OpenCV may use more
+    than one (``cv2.getNumThreads()``; service workers are held to one), else in turn; re-raises errors.
 
     Fresh threads rather than a pool: a pool's idle workers do not survive a fork into worker processes.
     """
@@ -182,10 +183,12 @@ def _run_parallel(run: Callable[[int], None], n: int) -> None:
         except BaseException as e:  # re-raised in the caller's thread below
             errors.append(e)
 
-    threads = [threading.Thread(target=guarded, args=(k,), daemon=True) for k in range(1, n)]
+    parallel = cv2.getNumThreads() > 1
+    threads = [threading.Thread(target=guarded, args=(k,), daemon=True) for k in range(1, n) if parallel]
     for thread in threads:
         thread.start()
-    guarded(0)
+    for k in range(1 if parallel else n):
+        guarded(k)
     for thread in threads:
         thread.join()
     if errors:

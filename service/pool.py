@@ -31,7 +31,13 @@ _CTX = mp.get_context("spawn")  # never fork: the zenoh session runs native thre
 
 
 # the workers share the cores: each gets cores // workers BLAS/OpenMP threads (no oversubscription)
-_THREAD_VARS = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS", "NUMEXPR_NUM_THREADS")
+_THREAD_VARS = (
+    "OMP_NUM_THREADS",
+    "OPENBLAS_NUM_THREADS",
+    "MKL_NUM_THREADS",
+    "NUMEXPR_NUM_THREADS",
+    "OPENCV_FOR_THREADS_NUM",  # OpenCV's own pool (LSD bands run in turn then; same segments)
+)
 _ENV_LOCK = threading.Lock()
 
 

@@ -178,7 +178,7 @@ def test_picture_border_and_flat_frame_give_no_segments(camera, rng):
 @pytest.mark.parametrize("threads", [1, 2, 3, 4])
 def test_parallel_bands_find_each_edge_once(camera, rng, threads):
     # the top and bottom edges cross every band boundary: their pieces must be joined again
-    found = detect(polygon_image(QUAD, rng), camera, LineDetectConfig(lsd_threads=threads))
+    found = detect(polygon_image(QUAD, rng), camera, LineDetectConfig(lsd_bands=threads))
     assert_edges_found(found, quad_edges(QUAD))
     assert len(found) == 4
 
@@ -186,8 +186,8 @@ def test_parallel_bands_find_each_edge_once(camera, rng, threads):
 def test_bands_keep_short_segments_near_a_cut(camera, rng):
     img = polygon_image(QUAD, rng)
     cv2.rectangle(img, (300, 200), (340, 230), 20, -1)  # a small box straddling the cut at x = 320
-    one = detect(img, camera, LineDetectConfig(lsd_threads=1))
-    two = detect(img, camera, LineDetectConfig(lsd_threads=2))
+    one = detect(img, camera, LineDetectConfig(lsd_bands=1))
+    two = detect(img, camera, LineDetectConfig(lsd_bands=2))
     assert len(one) == len(two) == 8
     for truth in one:  # the same segments, within a pixel
         assert matches_of(truth, two, dist_px=1.0).sum() == 1
@@ -203,10 +203,24 @@ def test_16bit_stretch_keeps_dead_pixels_dark_and_hot_ones_bright(rng):
 
 def test_bands_see_the_same_subsampled_pixels_away_from_the_cut(rng):
     img = polygon_image(QUAD, rng)
-    one = lsd_segments(img, LineDetectConfig(lsd_threads=1))
-    two = lsd_segments(img, LineDetectConfig(lsd_threads=2))
+    one = lsd_segments(img, LineDetectConfig(lsd_bands=1))
+    two = lsd_segments(img, LineDetectConfig(lsd_bands=2))
     # the right edge (x ~ 470-505) is in the second band (starting near x = 300), far from the cut
     right_one = one[np.minimum(one[:, 0], one[:, 2]) > 400]
     right_two = two[np.minimum(two[:, 0], two[:, 2]) > 400]
     assert len(right_one) >= 1
     np.testing.assert_allclose(np.sort(right_one, axis=0), np.sort(right_two, axis=0), atol=1e-4)
+
+
+def test_segments_do_not_depend_on_opencv_threads(camera, rng):
+    # service workers hold OpenCV to one thread: they must see the segments an interactive run sees
+    img = polygon_image(QUAD, rng)
+    before = cv2.getNumThreads()
+    try:
+        cv2.setNumThreads(1)
+        serial = detect(img, camera)
+        cv2.setNumThreads(2)
+        threaded = detect(img, camera)
+    finally:
+        cv2.setNumThreads(before)
+    np.testing.assert_array_equal(serial, threaded)

@@ -155,7 +155,7 @@ def quality(image: np.ndarray, segments: np.ndarray, truth: np.ndarray | None) -
 
     h, w = image.shape[:2]
     config = LineDetectConfig()
-    reference = replace(config, lsd_scale=1.0, max_work_pixels=w * h, lsd_threads=1)
+    reference = replace(config, lsd_scale=1.0, max_work_pixels=w * h, lsd_bands=1)
     diagonal = float(np.hypot(w, h))
     dist_px = COVER_PX * diagonal / 800.0
     out = {"ref_recall": coverage(detect(image, camera_for(image), reference), segments, dist_px, COVER_DEG)}
@@ -257,7 +257,7 @@ def run(args: argparse.Namespace) -> int:
     results = {
         "benchmark": "lines2d",
         "options": {"images": args.images, "repeats": args.repeats, "seed": args.seed, "data": str(data)}
-        | {"lsd_threads": threads},
+        | {"lsd_bands": threads},
         "targets_ms": {f"{w}x{h}": t for (w, h), t in TARGETS_MS.items()},
         "rows": rows,
         "images": [{k: v for k, v in r.items() if k != "key"} for r in records],
