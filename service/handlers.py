@@ -51,7 +51,8 @@ def _localize(req: LocalizeRequest, engine: Engine):
 
 
 def decode_pixels(req: LocalizeRequest) -> np.ndarray:
-    """Returns the request's image as (H, W) uint8 grey (what the line detector reads)."""
+    """Returns the request's image as the library reads it: raw pixels as (H, W) uint8 grey, an encoded
+    image as decoded ((H, W[, C]) uint8 or uint16, BGR), for ``localize`` to make grey."""
     import cv2
 
     if req.image_format == "raw":
@@ -63,10 +64,12 @@ def decode_pixels(req: LocalizeRequest) -> np.ndarray:
             pixels = pixels[:, :, 0] if code is None else cv2.cvtColor(pixels, code)
         return np.ascontiguousarray(pixels)
     buffer = np.frombuffer(req.image, dtype=np.uint8)  # type: ignore[arg-type]
-    image = cv2.imdecode(buffer, cv2.IMREAD_GRAYSCALE) if len(buffer) else None
+    # as stored, grey made by the library (``lines2d.to_gray8``): libpng's own grey conversion
+    # (IMREAD_GRAYSCALE) differs by a grey level here and there, enough to move a borderline photo's pose
+    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if len(buffer) else None
     if image is None:
         raise ProtocolError("bad_request", f"image does not decode as {req.image_format}")
-    if image.shape != (req.camera.height, req.camera.width):
+    if image.shape[:2] != (req.camera.height, req.camera.width):
         raise ProtocolError(
             "bad_request", f"decoded image is {image.shape[1]}x{image.shape[0]}, not the camera's size"
         )
