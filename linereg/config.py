@@ -144,6 +144,7 @@ class TranslationConfig:
     contest_fraction: float = 0.7
     unexplained_weight: float = 1.0
     empty_radius_fraction: float = 0.08
+    inlier_fraction: float = 0.04  # each refined inlier also counts for this fraction of the image diagonal
 
 
 @dataclass(frozen=True)
