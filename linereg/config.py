@@ -92,6 +92,12 @@ class RotationConfig:
     )
     top_k: int = 3  # pairings are tried among the strongest top_k VDs and top_k 3D clusters
     max_candidates: int = 24
+    # "separate": image share of the paired VDs + map share of the paired clusters, the angles decide which
+    # goes with which; "product": sum of sqrt(VD share x cluster share) (strongest with strongest)
+    ranking: Literal["separate", "product"] = "separate"
+    # when a third pair confirms some candidates, this many others follow them (0: only the confirmed; a
+    # spurious confirmation then leaves only wrong ones); each costs a translation screening
+    max_unconfirmed: int = 8
     refit: bool = (
         True  # re-fit each candidate's R to the member segments of its paired VDs (not just the VDs)
     )

@@ -55,25 +55,46 @@ def rotation_candidates(
     pairs = _consistent_pairings(V, D, config)  # (P, 2, 3)
     if len(pairs) == 0:
         return []
-    R = _fit(V, D, pairs)
-    third = _third_pairs(R, V, D, pairs, config.third_pair_tolerance_deg)  # (P, 3), -1 rows: none
+    third = _third_pairs(_fit(V, D, pairs), V, D, pairs, config.third_pair_tolerance_deg)  # (P, 3), -1: none
     confirmed = third[:, 0] >= 0
-    if confirmed.any():  # a third pair confirmed some: drop the others (all could have been checked)
-        pairs = np.concatenate([pairs, third[:, None, :]], axis=1)[confirmed]
-        R = _fit(V, D, pairs)
-    residual = _residual_deg(R, V, D, pairs)
+    # a third pair confirming some candidates does not refute the others: with noisy real directions an 8 deg
+    # tolerance confirms wrong rotations by accident, so the best ``max_unconfirmed`` others follow them
+    groups = [np.concatenate([pairs, third[:, None, :]], axis=1)[confirmed], pairs[~confirmed]]
     wv, wd = _weights(vds.support[: len(V)]), _weights(clusters.support[: len(D)])
-    score = np.sqrt(wv[pairs[..., 0]] * wd[pairs[..., 1]]).sum(axis=1) - 0.01 * residual
-    order = _dedupe(R, np.argsort(-score, kind="stable"), config.dedupe_angle_deg)[: config.max_candidates]
+    found = [_scored(V, D, g, wv, wd, config.ranking) for g in groups if len(g)]
+    R = np.concatenate([f[0] for f in found])
+    residual, score = np.concatenate([f[1] for f in found]), np.concatenate([f[2] for f in found])
+    paired = [p for f in found for p in f[3]]
+    rank = np.lexsort((-score, -np.array([len(p) for p in paired])))  # confirmed (three pairs) first
+    order = _dedupe(R, rank, config.dedupe_angle_deg)
+    if confirmed.any():
+        unconfirmed = [n for n in order if len(paired[n]) == 2][: config.max_unconfirmed]
+        order = [n for n in order if len(paired[n]) == 3] + unconfirmed
+    order = order[: config.max_candidates]
     logger.debug(
         "%d pairings, %d confirmed by a third, %d distinct", len(confirmed), confirmed.sum(), len(order)
     )
-    return [
-        RotationCandidate(
-            R[n], tuple((int(i), int(a), int(s)) for i, a, s in pairs[n]), float(residual[n]), float(score[n])
-        )
-        for n in order
-    ]
+    return [RotationCandidate(R[n], paired[n], float(residual[n]), float(score[n])) for n in order]
+
+
+def _scored(
+    V: np.ndarray, D: np.ndarray, pairs: np.ndarray, wv: np.ndarray, wd: np.ndarray, ranking: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[tuple[tuple[int, int, int], ...]]]:
+    """Returns (R (P, 3, 3), residual_deg (P,), score (P,), pairs as tuples) of (P, k, 3) pairings.
+
+    "separate": the paired VDs' share of the image support plus the paired clusters' share of the map
+    support; which VD goes with which cluster is left to the angles (residual). A map's and an image's
+    support do not rank a direction alike (a LiDAR map's vertical edges are few, an image's many), so the
+    "product" ranking (sum of sqrt(VD share x cluster share): strongest with strongest) cuts true pairings.
+    """
+    R = _fit(V, D, pairs)
+    residual = _residual_deg(R, V, D, pairs)
+    if ranking == "product":
+        support = np.sqrt(wv[pairs[..., 0]] * wd[pairs[..., 1]]).sum(axis=1)
+    else:
+        support = wv[pairs[..., 0]].sum(axis=1) + wd[pairs[..., 1]].sum(axis=1)
+    tuples = [tuple((int(i), int(a), int(s)) for i, a, s in p) for p in pairs]
+    return R, residual, support - 0.01 * residual, tuples
 
 
 def rotation_candidates_from_segments(

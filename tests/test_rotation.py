@@ -88,11 +88,32 @@ def test_each_candidate_maps_its_pairs():
 
 def test_a_third_pair_validates():
     candidates = rotation_candidates(vds_of(GENERIC_3), clusters(GENERIC_3))
-    assert len(candidates) == 1  # of 4 per VD pair, only the true rotation maps the third direction
-    assert best_error(candidates) < 1e-6
+    # of 4 per VD pair, only the true rotation maps the third direction: it comes first, with three pairs;
+    # the unconfirmed follow, at most ``max_unconfirmed`` of them
+    assert rotation_error_deg(candidates[0].R, R_TRUE) < 1e-6
     assert len(candidates[0].pairs) == 3
+    assert 1 < len(candidates) <= 1 + RotationConfig().max_unconfirmed
+    assert all(len(c.pairs) == 2 for c in candidates[1:])
+    strict = rotation_candidates(vds_of(GENERIC_3), clusters(GENERIC_3), RotationConfig(max_unconfirmed=0))
+    assert len(strict) == 1 and len(strict[0].pairs) == 3
     # with the third direction on one side only there is nothing to validate against
     assert len(rotation_candidates(vds_of(GENERIC_3[:2]), clusters(GENERIC_3))) > 1
+
+
+def test_a_spurious_confirmation_does_not_drop_the_truth():
+    # the image's third VD is no map direction under the truth (clutter, a noisy VD) but happens to be the
+    # third direction under a wrong pairing of the first two: that one is confirmed, the truth must follow
+    two = rotation_candidates(vds_of(GENERIC_3[:2]), clusters(GENERIC_3[:2]))
+    wrong = next(c.R for c in two if rotation_error_deg(c.R, R_TRUE) > 30.0)
+    v2 = wrong @ unit(GENERIC_3[2])
+    V = np.vstack([vds_of(GENERIC_3[:2]).directions, v2 if v2[2] >= 0 else -v2])
+    candidates = rotation_candidates(clusters(V), clusters(GENERIC_3))
+    assert rotation_error_deg(candidates[0].R, wrong) < 1e-6 and len(candidates[0].pairs) == 3
+    assert best_error(candidates) < 1e-6
+    assert (
+        best_error(rotation_candidates(clusters(V), clusters(GENERIC_3), RotationConfig(max_unconfirmed=0)))
+        > 30
+    )
 
 
 def test_manhattan_gives_the_cube_symmetries():
@@ -114,14 +135,26 @@ def test_image_without_the_maps_second_direction():
     assert best_error(candidates) < 1e-6
 
 
-def test_order_follows_support():
-    # VD 0 and cluster 0 strongest: candidates pairing them come first
-    V = vds_of(PERPENDICULAR)
-    D = clusters(PERPENDICULAR, support=[10.0, 1.0])
-    candidates = rotation_candidates(V, D)
+def test_order_follows_image_support():
+    # VD 0 strongest: candidates pairing it (with either cluster: the angles decide) come first
+    axes = np.eye(3)
+    V = clusters(vds_of(axes).directions, support=[10.0, 5.0, 1.0])
+    candidates = rotation_candidates(V, clusters(axes[:2]))
     scores = [c.score for c in candidates]
     assert scores == sorted(scores, reverse=True)
-    assert candidates[0].pairs[0][:2] == (0, 0)
+    assert [v for v, _, _ in candidates[0].pairs] == [0, 1]
+
+
+def test_the_maps_weakest_cluster_as_the_images_strongest_vd():
+    # a LiDAR street: the map's vertical edges are few (ground contours dominate) while the image's vertical
+    # VD is its strongest; ranking by the product of supports pairs strongest with strongest and cuts the truth
+    axes = np.eye(3)  # x street, y cross, z vertical
+    V = clusters(vds_of([axes[2], axes[0]]).directions, support=[50.0, 30.0])
+    D = clusters([axes[0], axes[2], axes[1]], support=[166.7, 49.0, 38.0])
+    config = RotationConfig(max_candidates=8)
+    assert best_error(rotation_candidates(V, D, config)) < 1e-6
+    product = rotation_candidates(V, D, RotationConfig(max_candidates=8, ranking="product"))
+    assert best_error(product) > 80.0
 
 
 def test_noisy_directions_within_tolerance():
@@ -129,7 +162,7 @@ def test_noisy_directions_within_tolerance():
     V = vds_of(GENERIC_3)
     noisy = unit(V.directions + np.radians(0.5) * rng.normal(size=(3, 3)) / np.sqrt(3))
     candidates = rotation_candidates(clusters(noisy), clusters(GENERIC_3))
-    assert len(candidates) == 1 and best_error(candidates) < 1.0
+    assert len(candidates[0].pairs) == 3 and rotation_error_deg(candidates[0].R, R_TRUE) < 1.0
     assert_proper(candidates)
 
 
@@ -175,7 +208,8 @@ def test_from_segments_noise_free(camera, rng):
     lines2d, lines3d = scene_segments(rng, camera, GENERIC_3, per_direction=30, noise_px=0.0)
     candidates, vds, found = rotation_candidates_from_segments(lines2d, lines3d, camera)
     assert len(vds) == 3 and len(found) == 3
-    assert len(candidates) == 1 and best_error(candidates) < 0.2
+    assert len(candidates[0].pairs) == 3 and rotation_error_deg(candidates[0].R, R_TRUE) < 0.2
+    assert all(len(c.pairs) == 2 for c in candidates[1:])  # the truth alone is confirmed
     assert_proper(candidates)
 
 
