@@ -5,7 +5,7 @@ the third column being the cross product of the first two). Which VD goes with w
 and a 3D line has no sign, so every pairing and every sign is a candidate: 8 for two pairs (paper) when the
 two directions are perpendicular; a pairing whose angle(VD1, VD2) differs from angle(s1 D1, s2 D2) cannot
 be a rotation and is rejected (for non-perpendicular directions that leaves 4). A third pair, where both
-sides have one, validates a candidate. VD signs are arbitrary (z >= 0), so signs live on the 3D side.
+sides have one, validates a candidate: validated ones come first, the best others after them. VD signs are arbitrary (z >= 0), so signs live on the 3D side.
 """
 
 from __future__ import annotations
@@ -45,6 +45,9 @@ def rotation_candidates(
     vds: DirectionClusters, clusters: DirectionClusters, config: RotationConfig | None = None
 ) -> list[RotationCandidate]:
     """Returns distinct rotation candidates, most plausible first, at most ``config.max_candidates``.
+
+    Order: confirmed by a third pair first, then by ``config.ranking`` (default: the image's share of
+    support of the paired VDs plus the map's share of the paired clusters, less 0.01 per degree of residual).
 
     vds: camera-frame vanishing directions (strongest first); clusters: world-frame parallel clusters.
     Pairings are tried among the ``config.top_k`` strongest of each (an image may not show the map's
