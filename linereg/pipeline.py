@@ -194,7 +194,10 @@ def _contest(
 
     contenders = poses[:1]
     if tc.method == "search":
-        contenders = _contenders(poses, tc, lines3d, lambda p: score(p.pose, p.hypothesis.matches))
+        # no fully searched pose (every finalist found nothing): the best, as the paper's rule has it
+        contenders = (
+            _contenders(poses, tc, lines3d, lambda p: score(p.pose, p.hypothesis.matches)) or contenders
+        )
     results = []
     for p in contenders:
         refined = refine_pose(
@@ -221,7 +224,7 @@ def _contenders(
         for p in full
         if len((h := p.hypothesis).runner_up_matches) and np.isfinite(h.runner_up_t).all()
     ]
-    most = max(p.hypothesis.num_inliers for p in full + second)
+    most = max((p.hypothesis.num_inliers for p in full + second), default=0)
     near = [p for p in full + second if p.hypothesis.num_inliers >= tc.contest_fraction * most]
     far = tc.distinct_fraction * scene_size(lines3d)
     contenders: list[_Pose] = []
