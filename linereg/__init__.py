@@ -32,7 +32,7 @@ _LAZY = {
     "localize": "linereg.localization",
     "localize_segments": "linereg.localization",
     "Prior": "linereg.localization",
-    "LineMap": "linereg.linemap",
+    "LineMap": "linereg.map.linemap",
 }
 
 

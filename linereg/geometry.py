@@ -63,9 +63,21 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
 
 
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
-    """Returns the angle in degrees of ``R_a^T R_b`` (paper: ``acos((trace(R_a^T R_b) - 1) / 2)``)."""
-    c = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    """Returns the angle in degrees of ``R_a^T R_b`` (paper: ``acos((trace(R_a^T R_b) - 1) / 2)``).
+
+    Computed as ``atan2(sin, cos)`` from the skew part and the trace: ``acos`` near 1 turns a few ulp of
+    rounding into ~1e-6 degrees, ``atan2`` resolves small angles to ~1e-14.
+    """
+    M = R_a.T @ R_b
+    sin = 0.5 * np.linalg.norm([M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
+    cos = 0.5 * (np.trace(M) - 1.0)
+    return float(np.degrees(np.arctan2(sin, cos)))
+
+
+def axis_angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    """Returns the angle in degrees between two sign-free (3,) axes, in [0, 90], well conditioned near 0."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    return float(np.degrees(np.arctan2(np.linalg.norm(np.cross(a, b)), abs(float(a @ b)))))
 
 
 def pose_errors(cam_from_world: np.ndarray, gt_cam_from_world: np.ndarray) -> tuple[float, float, float]:

@@ -11,8 +11,8 @@ from .config import LineDetectConfig, RegisterConfig
 from .directions import subset_clusters
 from .errors import InvalidInputError
 from .geometry import camera_center, segment_lengths
-from .linemap import LineMap
 from .lines2d import detect
+from .map.linemap import LineMap
 from .pipeline import register_undistorted
 from .registration import Registration, check_segments
 from .timing import StageTimer

@@ -226,9 +226,11 @@ def _third_pairs(
 
 def _residual_deg(R: np.ndarray, V: np.ndarray, D: np.ndarray, pairs: np.ndarray) -> np.ndarray:
     """Returns (P,) the largest angle (deg) between ``R s D_a`` and ``V_i`` over each rotation's pairs."""
-    d = pairs[..., 2, None] * D[pairs[..., 1]]  # (P, k, 3)
-    cos = np.einsum("pki,pij,pkj->pk", V[pairs[..., 0]], R, d)
-    return _angle_deg(cos.min(axis=1))
+    d = np.einsum("pij,pkj->pki", R, pairs[..., 2, None] * D[pairs[..., 1]])  # (P, k, 3): R s D_a
+    v = V[pairs[..., 0]]
+    # atan2(|v x Rd|, v . Rd): arccos of the dot product cannot resolve angles below ~1e-6 degrees
+    angle = np.arctan2(np.linalg.norm(np.cross(v, d), axis=-1), np.einsum("pki,pki->pk", v, d))
+    return np.degrees(angle.max(axis=1))
 
 
 def _dedupe(R: np.ndarray, order: np.ndarray, angle_deg: float) -> list[int]:

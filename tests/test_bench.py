@@ -131,7 +131,7 @@ def test_a_failing_scene_generator_is_recorded_not_fatal(monkeypatch):
     def broken(rng):
         raise RuntimeError("not yet")
 
-    monkeypatch.setattr(synthetic.synthetic, "building_scene", broken, raising=False)
+    monkeypatch.setattr(synthetic, "building_scene", broken)
     options = synthetic.Options(trials=2, methods=("oracle",))
     records = synthetic.run_cell(synthetic.Cell("building", 0.0, 0, 0.0, 0.0), options)
     assert len(records) == 2 and not any(r["success"] for r in records)

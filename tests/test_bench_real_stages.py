@@ -7,8 +7,8 @@ import pytest
 
 from linereg.bench import real
 from linereg.bench.real_stages import STAGE_COLUMNS, stage_record
-from linereg.linemap import LineMap
-from linereg.synthetic import paper_scene
+from linereg.map.linemap import LineMap
+from linereg.sim.synthetic import paper_scene
 
 
 @pytest.fixture(scope="module")

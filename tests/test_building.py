@@ -1,11 +1,11 @@
 import numpy as np
 import pytest
 
-from linereg.building import EDGE_KINDS, FACE_KINDS, BuildingConfig, make_building, rect_minus
 from linereg.geometry import camera_center, line_coefficients
 from linereg.matching import project_segments
-from linereg.synthetic import building_scene
-from linereg.views import camera_poses, occluded, project_building, street_camera
+from linereg.sim.building import EDGE_KINDS, FACE_KINDS, BuildingConfig, make_building, rect_minus
+from linereg.sim.building_scene import building_scene
+from linereg.sim.views import camera_poses, occluded, project_building, street_camera
 
 SMALL = BuildingConfig(layout="street", blocks_per_side=1, floors=(3, 4))
 

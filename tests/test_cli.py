@@ -37,7 +37,7 @@ def leftovers(folder) -> list[str]:
 @pytest.fixture(scope="module")
 def scene():
     """The demo scene as `linereg demo` makes it (a coarser scan gives a map too poor to localize in)."""
-    from linereg.demo_scene import make_demo_scene
+    from linereg.sim.demo_scene import make_demo_scene
 
     return make_demo_scene(seed=0, num_images=NUM_IMAGES)
 
@@ -99,10 +99,10 @@ def test_localize_writes_json_tum_and_overlays(scene, files, capsys, tmp_path):
 
 
 def test_demo_smoke(scene, capsys, tmp_path, monkeypatch):
-    import linereg.demo_scene
+    import linereg.sim.demo_scene
 
     # the small scene of this module instead of a fresh 1 M-point one: this checks the command, not the scene
-    monkeypatch.setattr(linereg.demo_scene, "make_demo_scene", lambda seed, num_images: scene)
+    monkeypatch.setattr(linereg.sim.demo_scene, "make_demo_scene", lambda seed, num_images: scene)
     code, out, err = run(capsys, "demo", "--images", NUM_IMAGES, "--out", tmp_path)
     assert code == 0, err
     assert "localized" in out and len(list(tmp_path.glob("*.png"))) == NUM_IMAGES
@@ -151,8 +151,8 @@ def test_map_info_rejects_a_corrupt_map(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     """A small map (the edges of a box), a 640x480 camera file and a valid image, for the bad-input cases."""
-    from linereg.linemap import LineMap
-    from linereg.views import street_camera
+    from linereg.map.linemap import LineMap
+    from linereg.sim.views import street_camera
 
     folder = tmp_path_factory.mktemp("small")
     corners = np.array([[x, y, z] for x in (0, 4) for y in (0, 3) for z in (0, 2)], float)

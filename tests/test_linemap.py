@@ -9,7 +9,7 @@ import pytest
 import linereg
 from linereg.errors import FileFormatError, InvalidInputError
 from linereg.geometry import make_cam_from_world
-from linereg.linemap import FORMAT_VERSION, LineMap
+from linereg.map.linemap import FORMAT_VERSION, LineMap
 
 
 def grid_segments(n=6, spacing=4.0, height=3.0):

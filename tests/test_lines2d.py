@@ -111,7 +111,7 @@ def test_bad_input_names_image(camera, image):
 
 
 def test_distorted_image_gives_undistorted_segments(rng):
-    from linereg.render import _distort
+    from linereg.sim.render import _distort
 
     camera = linereg.Camera(600.0, 600.0, 320.0, 240.0, 640, 480, dist=(-0.25, 0.08, 0.0, 0.0))
     image = _distort(polygon_image(QUAD, rng).astype(np.float32), camera)

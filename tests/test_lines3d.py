@@ -5,8 +5,8 @@ import pytest
 
 from linereg.config import Lines3DConfig
 from linereg.errors import InvalidInputError
-from linereg.lines3d import extract, merge_collinear
-from linereg.planes import segment_planes
+from linereg.map.lines3d import extract, merge_collinear
+from linereg.map.planes import segment_planes
 
 WINDOW = (3.0, 4.5, 2.0, 3.2, 0.2)  # x0, x1, z0, z1, recess depth
 

@@ -4,11 +4,11 @@ rectangle candidates, collinear merging."""
 import numpy as np
 import pytest
 
-from linereg.collinear import merge_collinear
 from linereg.config import Lines3DConfig
-from linereg.contours import image_contours, image_lines
-from linereg.edge_refine import refine_edges
-from linereg.line_families import box_lines, dominant_directions, snap_to_families
+from linereg.map.collinear import merge_collinear
+from linereg.map.contours import image_contours, image_lines
+from linereg.map.edge_refine import refine_edges
+from linereg.map.line_families import box_lines, dominant_directions, snap_to_families
 
 BASIS = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])  # a facade y = const: u along x, v up
 VERTICAL = (np.array([[0.0, 0.0, 1.0], [1.0, 0.0, 0.0]]), np.array([50.0, 40.0]))  # families: z, x

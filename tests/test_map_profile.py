@@ -3,7 +3,7 @@ import pytest
 
 from linereg.config import Lines3DConfig
 from linereg.errors import InvalidInputError
-from linereg.map_profile import lines3d_config_for, point_spacing_m
+from linereg.map.profile import lines3d_config_for, point_spacing_m
 
 
 def grid_points(spacing_m: float, size_m: float = 1.0) -> np.ndarray:

@@ -3,6 +3,7 @@ import pytest
 
 from linereg.config import ParallelConfig
 from linereg.errors import InvalidInputError
+from linereg.geometry import axis_angle_deg
 from linereg.parallel import diverse_order, parallel_clusters, tolerance_rad
 
 
@@ -36,7 +37,7 @@ def random_segments(rng, n) -> np.ndarray:
 
 
 def angle_deg(a, b) -> float:
-    return float(np.degrees(np.arccos(min(1.0, abs(a @ b)))))
+    return axis_angle_deg(a, b)
 
 
 DIRECTIONS = unit([[1.0, 0.2, 0.0], [-0.2, 1.0, 0.1], [0.0, -0.1, 1.0]])

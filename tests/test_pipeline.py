@@ -7,7 +7,8 @@ import linereg
 from linereg.config import RegisterConfig, TranslationConfig
 from linereg.geometry import pose_errors
 from linereg.registration import Registration
-from linereg.synthetic import building_scene, paper_scene
+from linereg.sim.building_scene import building_scene
+from linereg.sim.synthetic import paper_scene
 
 # building seeds that registered in every variant tried (before and after the screening, the rotation re-fit
 # and the contest): a symmetric block seen from its far side, or a bare window grid, explains the image as

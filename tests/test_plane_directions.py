@@ -2,7 +2,8 @@ import numpy as np
 import pytest
 
 from linereg.errors import InvalidInputError
-from linereg.plane_directions import dominant_normals, map_clusters, plane_directions
+from linereg.geometry import axis_angle_deg
+from linereg.map.plane_directions import dominant_normals, map_clusters, plane_directions
 
 
 def unit(v) -> np.ndarray:
@@ -11,7 +12,7 @@ def unit(v) -> np.ndarray:
 
 
 def angle_deg(a, b) -> float:
-    return float(np.degrees(np.arccos(min(1.0, abs(float(np.dot(a, b)))))))
+    return axis_angle_deg(a, b)
 
 
 def jittered(rng, normal, count, jitter_deg) -> np.ndarray:

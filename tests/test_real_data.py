@@ -42,7 +42,7 @@ def test_cloud_seen_through_the_true_pose_fills_the_image(folder):
     inside = (
         (uv[:, 0] >= 0) & (uv[:, 0] < item.camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < item.camera.height)
     )
-    assert inside.sum() > 10_000
+    assert inside.sum() > min(10_000, 0.1 * len(points))  # a sweep cropped to the view, or a 360 one
     # the points cover the image broadly (KITTI's Velodyne: the lower part only)
     cells = np.unique((uv[inside] // 40).astype(int), axis=0)
     assert len(cells) > 0.3 * (item.camera.width // 40) * (item.camera.height // 40)

@@ -11,7 +11,7 @@ from linereg.errors import InvalidInputError
 from linereg.geometry import camera_center, invert, line_coefficients, pose_errors, transform_points
 from linereg.line_factor import LineProjection, line_factor, line_residuals
 from linereg.refine import Refinement, refine_pose
-from linereg.synthetic import paper_scene
+from linereg.sim.synthetic import paper_scene
 
 Scalar = gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar
 Block = gtsam.noiseModel.mEstimator.Base.ReweightScheme.Block

@@ -4,13 +4,13 @@ import numpy as np
 import pytest
 
 import linereg
-from linereg.building import make_building
-from linereg.demo_scene import make_demo_scene
 from linereg.geometry import invert
 from linereg.lines2d import detect
-from linereg.render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
-from linereg.scanner import ScanConfig
-from linereg.views import camera_poses, project_building, street_camera
+from linereg.sim.building import make_building
+from linereg.sim.demo_scene import make_demo_scene
+from linereg.sim.render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
+from linereg.sim.scanner import ScanConfig
+from linereg.sim.views import camera_poses, project_building, street_camera
 
 
 @pytest.fixture(scope="module")
@@ -112,7 +112,7 @@ def test_shade_is_lifted_by_the_tone_curve(scene):
 
 
 def test_demo_poses_show_more_than_a_wall():
-    from linereg.demo_scene import _distinctive, demo_poses
+    from linereg.sim.demo_scene import _distinctive, demo_poses
 
     building = make_building(np.random.default_rng(2))
     camera = street_camera()

@@ -225,7 +225,7 @@ def test_from_segments_with_noise_and_clutter(camera, rng):
 
 
 def test_paper_scenes():
-    synthetic = pytest.importorskip("linereg.synthetic")
+    synthetic = pytest.importorskip("linereg.sim.synthetic")
     rng = np.random.default_rng(2)
     errors = []
     for _ in range(10):
@@ -241,7 +241,7 @@ def test_refine_candidates_pulls_an_off_rotation_onto_the_segments():
     from dataclasses import replace
 
     from linereg.rotation import refine_candidates
-    from linereg.synthetic import building_scene
+    from linereg.sim.building_scene import building_scene
 
     scene = building_scene(np.random.default_rng(3))
     candidates, vds, cl = rotation_candidates_from_segments(scene.lines2d, scene.lines3d, scene.camera)

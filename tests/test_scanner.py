@@ -3,11 +3,11 @@
 import numpy as np
 import pytest
 
-from linereg.building import make_building
-from linereg.demo_scene import scanner_positions
 from linereg.errors import InvalidInputError
-from linereg.scanner import ScanConfig, scan, thin
-from linereg.views import occluded
+from linereg.sim.building import make_building
+from linereg.sim.demo_scene import scanner_positions
+from linereg.sim.scanner import ScanConfig, scan, thin
+from linereg.sim.views import occluded
 
 COARSE = ScanConfig(angular_step_deg=0.6)
 

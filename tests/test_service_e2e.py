@@ -11,8 +11,8 @@ import pytest
 import linereg
 from linereg.geometry import pose_errors
 
-pytest.importorskip("linereg.linemap", reason="LineMap not landed yet")
-synthetic = pytest.importorskip("linereg.synthetic")
+pytest.importorskip("linereg.map.linemap", reason="LineMap not landed yet")
+synthetic = pytest.importorskip("linereg.sim.synthetic")
 
 from service import Client, Service, ServiceConfig  # noqa: E402
 

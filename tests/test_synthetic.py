@@ -5,7 +5,7 @@ from linereg.config import MatchConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import camera_center, line_coefficients, segment_lengths, transform_points
 from linereg.matching import match_matrix, project_segments
-from linereg.synthetic import Scene, clip_to_image, look_at, paper_camera, paper_scene
+from linereg.sim.synthetic import Scene, clip_to_image, look_at, paper_camera, paper_scene
 
 
 def endpoint_distances(scene: Scene) -> np.ndarray:

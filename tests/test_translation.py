@@ -11,7 +11,7 @@ from linereg.directions import DirectionClusters
 from linereg.geometry import make_cam_from_world
 from linereg.matching import match_matrix, match_segments, project_segments
 from linereg.parallel import parallel_clusters
-from linereg.synthetic import paper_scene
+from linereg.sim.synthetic import paper_scene
 from linereg.translation import estimate_translation, screen_translation
 from linereg.translation_inliers import pair_inliers, pair_matches
 from linereg.translation_pairs import compatible_pairs

@@ -5,7 +5,7 @@ import pytest
 
 from linereg.config import MatchConfig
 from linereg.directions import DirectionClusters
-from linereg.synthetic import paper_scene
+from linereg.sim.synthetic import paper_scene
 from linereg.translation_inliers import _near_loose
 from linereg.translation_pairs import Pairs, compatible_pairs
 from linereg.translation_search import _fullest_cells, vote_cells

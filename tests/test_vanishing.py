@@ -4,7 +4,7 @@ import pytest
 from linereg.camera import Camera
 from linereg.config import VanishingConfig
 from linereg.errors import InvalidInputError
-from linereg.geometry import interpretation_normals, project_points
+from linereg.geometry import axis_angle_deg, interpretation_normals, project_points
 from linereg.vanishing import vanishing_directions
 
 
@@ -47,7 +47,7 @@ def random_segments(rng, n, min_px=30.0, max_px=200.0):
 
 def angle_deg(a, b) -> float:
     """Returns the sign-free angle between two directions in degrees."""
-    return float(np.degrees(np.arccos(min(1.0, abs(a @ b) / np.linalg.norm(a) / np.linalg.norm(b)))))
+    return axis_angle_deg(a, b)
 
 
 DIRECTIONS = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])

@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from . import report
+from ..bench import report
 
 STAGES = ("lines2d", "culling", "vanishing", "rotation", "translation", "refine", "total")
 TARGETS = {"success_rate": 1.0, "rotation_deg_median": 0.5, "position_m_median": 0.2, "whole_s": 60.0}
@@ -53,8 +53,8 @@ def run_seed(
 ) -> dict[str, Any]:
     """Returns one seed's results: scene/map/localization seconds, map size and one record per image."""
     from ..config import RegisterConfig
-    from ..demo_scene import make_demo_scene
-    from ..linemap import LineMap
+    from ..map.linemap import LineMap
+    from ..sim.demo_scene import make_demo_scene
 
     config = RegisterConfig.preset(preset)
     t0, cpu0 = time.perf_counter(), time.process_time()

@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from . import report
+from ..bench import report
 
 HD = (1920, 1080)
 TARGETS_MS = {(640, 480): 30.0, HD: 150.0}
@@ -61,9 +61,9 @@ def hd_camera(camera: Any) -> Any:
 
 def demo_images(num_images: int, seed: int) -> Iterator[tuple[str, np.ndarray, np.ndarray | None]]:
     """Yields (source, image, (K, 4) true visible edges): the demo photos, then the same views at 1920x1080."""
-    from ..demo_scene import make_demo_scene
-    from ..render import render_image
-    from ..views import project_building
+    from ..sim.demo_scene import make_demo_scene
+    from ..sim.render import render_image
+    from ..sim.views import project_building
 
     scene = make_demo_scene(seed=seed, num_images=num_images)
     for image, cam_from_world in zip(scene.images, scene.cam_from_world, strict=True):

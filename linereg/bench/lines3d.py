@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from . import report
+from ..bench import report
 
 TARGETS = {"seconds": 10.0, "peak_gb": 4.0, "recall": 0.8}
 DISTANCE_M = 0.05
@@ -48,7 +48,7 @@ def child_main(points_path: str, segments_path: str, overrides: str = "{}") -> N
     from dataclasses import replace
 
     from ..config import Lines3DConfig
-    from ..lines3d import extract
+    from ..map.lines3d import extract
 
     points = np.load(points_path)
     config = replace(Lines3DConfig(), **json.loads(overrides))
@@ -194,7 +194,7 @@ def demo_scan(seed: int, num_points: int) -> tuple[Any, np.ndarray]:
     """Returns (building, scan): the demo scene's scan subsampled to at most ``num_points`` points."""
     from dataclasses import replace
 
-    from ..demo_scene import DEMO_SCAN, make_demo_scene
+    from ..sim.demo_scene import DEMO_SCAN, make_demo_scene
 
     scene = make_demo_scene(seed=seed, num_images=0, scan_config=replace(DEMO_SCAN, target_points=num_points))
     return scene.building, np.asarray(scene.cloud, dtype=np.float64)

@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from . import report
+from ..bench import report
 
 DATA_ENV = "LINEREG_DATA"
 
@@ -148,7 +148,7 @@ def build_map(
     """Returns (LineMap, record with points, segments and build seconds) of one cloud file; ``map_config``:
     None (defaults), ``"auto"`` or a JSON object of ``Lines3DConfig`` fields."""
     from .. import io
-    from ..linemap import LineMap
+    from ..map.linemap import LineMap
 
     start = time.perf_counter()
     points = io.read_cloud(cloud_path)
@@ -169,7 +169,7 @@ def lines3d_config(map_config: str | None, points: np.ndarray) -> Any:
     """Returns the Lines3DConfig a ``--map-config`` value asks for (InvalidInputError if malformed)."""
     from ..config import Lines3DConfig
     from ..errors import InvalidInputError
-    from ..map_profile import lines3d_config_for
+    from ..map.profile import lines3d_config_for
 
     if map_config is None:
         return Lines3DConfig()
@@ -186,9 +186,9 @@ def lines3d_config(map_config: str | None, points: np.ndarray) -> Any:
 def with_plane_directions(line_map: Any, points: np.ndarray) -> Any:
     """Returns the LineMap with clusters from its segments and the dominant planes of (P, 3) ``points``."""
     from ..config import Lines3DConfig
-    from ..linemap import LineMap
-    from ..plane_directions import map_clusters
-    from ..planes import segment_planes
+    from ..map.linemap import LineMap
+    from ..map.plane_directions import map_clusters
+    from ..map.planes import segment_planes
 
     planes = segment_planes(points - points.min(axis=0), Lines3DConfig())
     areas = planes.counts * planes.spacing_m**2  # a region's points times the area each stands for

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import report
+from ..bench import report
 
 CPU_S = 0.05  # seconds of one core per stand-in request (a real localization is of this order)
 
@@ -153,7 +153,7 @@ def bench_real(n: int) -> dict:
     """Returns in-process vs service latency and 1 vs 2 worker throughput of ``localize_segments`` on the
     paper's synthetic scene (segments in, no image decoding)."""
     from linereg import LineMap, localize_segments
-    from linereg.synthetic import paper_scene
+    from linereg.sim.synthetic import paper_scene
     from service import Client
 
     scene = paper_scene(np.random.default_rng(3))

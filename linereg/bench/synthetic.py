@@ -7,7 +7,7 @@ Sweeps (2 px endpoint noise throughout):
 - ``outliers3d``: 3D outlier fraction 0 .. 0.6 at 100 lines, 30 % 2D outliers (paper fig. outlier a);
 - ``outliers2d``: 2D outlier fraction 0, 0.2, 0.4, 0.6 at 100 lines, 30 % 3D outliers (paper fig. outlier b);
 - ``outliers``: 3D and 2D outlier fractions together, 0.3 and 0.6, at 100 lines (the issue's target cells);
-- ``building``: ``synthetic.building_scene`` with its defaults, when that generator exists.
+- ``building``: ``sim.building_scene.building_scene`` with its defaults.
 
 Methods: ``vp`` (``linereg.register``, ours), ``ransac6`` (``register`` with ``method="ransac6"``, the
 paper's baseline) and ``oracle`` (PnL with the true matches, the accuracy reference). Trial ``i`` of a cell
@@ -28,11 +28,12 @@ from typing import Any
 
 import numpy as np
 
-from .. import synthetic
+from ..bench import report
 from ..config import Ransac6Config, RegisterConfig
 from ..geometry import pose_errors
 from ..registration import Registration
-from . import report
+from ..sim import synthetic
+from ..sim.building_scene import building_scene
 
 log = logging.getLogger(__name__)
 
@@ -70,7 +71,7 @@ class Cell:
     def scene(self, rng: np.random.Generator) -> synthetic.Scene:
         """Returns the scene of one trial."""
         if self.sweep == "building":
-            return synthetic.building_scene(rng)  # type: ignore[attr-defined]
+            return building_scene(rng)
         return synthetic.paper_scene(rng, self.num_lines, self.outlier3d, self.outlier2d, NOISE_PX)
 
 
@@ -92,8 +93,7 @@ def cells(quick: bool) -> list[Cell]:
     out += [Cell("outliers3d", f, lines, outlier3d=f) for f in grid["outliers3d"]]
     out += [Cell("outliers2d", f, lines, outlier2d=f) for f in grid["outliers2d"]]
     out += [Cell("outliers", f, lines, outlier3d=f, outlier2d=f) for f in grid["outliers"]]
-    if hasattr(synthetic, "building_scene"):
-        out.append(Cell("building", 0.0, num_lines=0, outlier3d=0.0, outlier2d=0.0))  # fields unused
+    out.append(Cell("building", 0.0, num_lines=0, outlier3d=0.0, outlier2d=0.0))  # fields unused
     return out
 
 
@@ -120,7 +120,7 @@ def _run_ransac6(scene: synthetic.Scene, config: RegisterConfig) -> Registration
 
 
 def _run_oracle(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
-    from ..oracle import pnl_known_correspondences
+    from .oracle import pnl_known_correspondences
 
     pose = pnl_known_correspondences(
         scene.lines2d, scene.lines3d, scene.true_matches, scene.camera, config.match.distance_px

@@ -39,11 +39,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .. import io
-    from ..demo_scene import make_demo_scene
     from ..geometry import pose_errors
-    from ..linemap import LineMap
     from ..lines2d import detect
+    from ..map.linemap import LineMap
     from ..overlay import draw_overlay
+    from ..sim.demo_scene import make_demo_scene
 
     t0 = time.perf_counter()
     say(f"building the demo scene (seed {args.seed}, {args.images} photos) ...")

@@ -113,7 +113,7 @@ def _executor(workers: int, init: tuple):
 
 
 def _init_worker(map_path: str, overlay_dir: str | None, preset: str) -> None:
-    from ..linemap import LineMap
+    from ..map.linemap import LineMap
 
     _worker_state["map"] = LineMap.load(map_path)
     _worker_state["config"] = RegisterConfig.preset(preset)

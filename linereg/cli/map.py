@@ -41,7 +41,7 @@ def run_build(args: argparse.Namespace) -> int:
     from ..config import Lines3DConfig
     from ..errors import InvalidInputError
     from ..io import read_cloud
-    from ..linemap import LineMap
+    from ..map.linemap import LineMap
 
     if args.voxel < 0 or (args.plane_voxel is not None and args.plane_voxel <= 0):
         raise InvalidInputError("--voxel must be >= 0 and --plane-voxel > 0")
@@ -72,7 +72,7 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
-    from ..linemap import LineMap
+    from ..map.linemap import LineMap
 
     summary = LineMap.load(args.map).info()
     if args.json:

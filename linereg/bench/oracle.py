@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .camera import Camera
-from .errors import InvalidInputError
-from .geometry import make_cam_from_world
-from .registration import check_segments
+from ..camera import Camera
+from ..errors import InvalidInputError
+from ..geometry import make_cam_from_world
+from ..registration import check_segments
 
 
 def pnl_known_correspondences(

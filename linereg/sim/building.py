@@ -246,7 +246,7 @@ def _block(parts: _Parts, rng, cfg: BuildingConfig, footprint: np.ndarray, b: in
     )
     x0, y0, x1, y1 = footprint
     height = style.floors * style.floor_h
-    for frame, length, extend in _block_facades(footprint):
+    for frame, length, extend in block_facades(footprint):
         _facade(parts, rng, cfg, style, frame, length, b)
         _ledges(parts, cfg, frame, length, np.arange(1, style.floors) * style.floor_h, extend, b)
     roof = _Frame(np.array([x0, y0, height]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), _Z)
@@ -254,7 +254,7 @@ def _block(parts: _Parts, rng, cfg: BuildingConfig, footprint: np.ndarray, b: in
     return height
 
 
-def _block_facades(footprint: np.ndarray) -> list[tuple[_Frame, float, bool]]:
+def block_facades(footprint: np.ndarray) -> list[tuple[_Frame, float, bool]]:
     """Returns (frame, length, x-facing) of the 4 facades of a footprint; frame u = z x n runs CCW round it."""
     x0, y0, x1, y1 = footprint
     out = []

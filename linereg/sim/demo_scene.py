@@ -11,12 +11,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..camera import Camera
+from ..errors import LineregError
 from .building import Building, make_building
-from .camera import Camera
-from .errors import LineregError
 from .render import RenderConfig, rasterize, render_image, scaled_camera, visible_edge_lengths
 from .scanner import ScanConfig, scan
-from .views import _aim, _is_free, _street_view, street_camera
+from .views import aim, is_free, street_camera, street_view
 
 log = logging.getLogger(__name__)
 
@@ -108,7 +108,7 @@ def demo_poses(
     min_visible_edges: int = 60,
     max_tries: int = 100,
 ) -> list[np.ndarray]:
-    """Returns n (4, 4) cam_from_world street views (``views._street_view``) a photographer would take.
+    """Returns n (4, 4) cam_from_world street views (``views.street_view``) a photographer would take.
 
     Each must show at least ``min_visible_edges`` edges of 20 px or more and some structure that fixes
     where along the building it stands (``_distinctive``), not just a patch of wall with a window grid,
@@ -119,10 +119,10 @@ def demo_poses(
     for _ in range(max_tries * max(n, 1)):
         if len(poses) == n:
             break
-        centre, target = _street_view(rng, building)
-        if not _is_free(building, centre):
+        centre, target = street_view(rng, building)
+        if not is_free(building, centre):
             continue
-        cam_from_world = _aim(rng, centre, target)
+        cam_from_world = aim(rng, centre, target)
         face_id, inv_depth = rasterize(building, cam_from_world, small)
         lengths = visible_edge_lengths(building, cam_from_world, camera, face_id, inv_depth)
         if (lengths >= 20.0).sum() >= min_visible_edges and _distinctive(building, face_id, lengths, camera):

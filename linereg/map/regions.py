@@ -10,7 +10,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from .config import Lines3DConfig
+from ..config import Lines3DConfig
 from .voxels import (
     AROUND,
     Moments,

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .config import Lines3DConfig
+from ..config import Lines3DConfig
 from .planes import Planes
 
 _ONE_SIDED = 0.8  # share of a region's points near a crease that must lie on the same side of it

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .config import Lines3DConfig
+from ..config import Lines3DConfig
 from .regions import components, group_order, grow_regions, regions_at, relabel, renumber
 from .voxels import (
     Moments,

@@ -22,9 +22,9 @@ from dataclasses import replace
 
 import numpy as np
 
-from .config import ParallelConfig
-from .directions import DirectionClusters
-from .parallel import (
+from ..config import ParallelConfig
+from ..directions import DirectionClusters
+from ..parallel import (
     as_segments,
     canonical_sign,
     parallel_clusters,

@@ -18,12 +18,12 @@ from typing import NamedTuple
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ..config import Lines3DConfig
+from ..errors import InvalidInputError
 from .collinear import drop_near, merge_collinear
-from .config import Lines3DConfig
 from .contours import image_contours, image_lines, plane_basis, region_image
 from .creases import crease_segments
 from .edge_refine import refine_edges
-from .errors import InvalidInputError
 from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
 from .planes import Planes, segment_planes, voxel_downsample
 

@@ -1,4 +1,4 @@
-"""Believable photos of a procedural building (``linereg.building``) from a known pose, in numpy/OpenCV.
+"""Believable photos of a procedural building (``linereg.sim.building``) from a known pose, in numpy/OpenCV.
 
 Faces are rasterised into a supersampled z-buffer (inverse depth is affine in the pixel coordinates of
 a planar face, so each face's depth is exact), coloured per kind with Lambert shading under a sun and a
@@ -14,9 +14,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from ..camera import Camera
+from ..geometry import invert
 from .building import Building
-from .camera import Camera
-from .geometry import invert
 
 _KINDS = ("wall", "window", "door", "roof", "ground", "ledge")
 # linear RGB-ish albedos in BGR order (0..1); walls get a per-block tint on top
@@ -153,7 +153,7 @@ def _clip_near(quad_cam: np.ndarray, near_m: float) -> np.ndarray:
     return np.array(out)
 
 
-def _rotate(vectors: np.ndarray, R: np.ndarray) -> np.ndarray:
+def rotate(vectors: np.ndarray, R: np.ndarray) -> np.ndarray:
     """Returns (..., 3) ``R @ v`` for every vector; einsum, as ``(N, 3) @ (3, 3)`` matmul is slow here."""
     return np.einsum("...k,jk->...j", vectors, R)
 
@@ -208,7 +208,7 @@ def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator,
 
 def _sky_image(camera: Camera, world_from_cam: np.ndarray) -> np.ndarray:
     """Returns (H, W, 3) float32 BGR sky: gradient by ray elevation, far ground below the horizon."""
-    dirs = _rotate(_pixel_rays(camera), world_from_cam[:3, :3])
+    dirs = rotate(_pixel_rays(camera), world_from_cam[:3, :3])
     elevation = dirs[:, :, 2] / np.linalg.norm(dirs, axis=2)
     e = np.clip(elevation, 0.0, 1.0)[..., None] ** 0.6
     colour = (1.0 - e) * _SKY_HORIZON + e * _SKY_ZENITH
@@ -220,7 +220,7 @@ def _texture(building, camera, world_from_cam, face_id, inv_depth, rng) -> np.nd
     ids = np.maximum(face_id, 0)
     depth = np.where(face_id >= 0, 1.0 / np.maximum(inv_depth, 1e-12), 0.0).astype(np.float32)
     rays = _pixel_rays(camera).astype(np.float32) * depth[:, :, None]
-    points = _rotate(rays, world_from_cam[:3, :3].astype(np.float32)) + world_from_cam[:3, 3].astype(
+    points = rotate(rays, world_from_cam[:3, :3].astype(np.float32)) + world_from_cam[:3, 3].astype(
         np.float32
     )
     # texture coordinates in the face's plane: (horizontal, z) on facades, (x, y) on the ground

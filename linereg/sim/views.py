@@ -9,10 +9,10 @@ import logging
 
 import numpy as np
 
-from .building import Building, _block_facades
-from .camera import Camera
-from .errors import LineregError
-from .geometry import camera_center, project_points, segment_lengths, transform_points
+from ..camera import Camera
+from ..errors import LineregError
+from ..geometry import camera_center, project_points, segment_lengths, transform_points
+from .building import Building, block_facades
 from .synthetic import MIN_LENGTH_PX, clip_to_box, look_at
 
 logger = logging.getLogger(__name__)
@@ -149,7 +149,7 @@ def project_building(
     return seg[keep], idx[keep]
 
 
-def _is_free(building: Building, centre: np.ndarray, clearance_m: float = 1.0) -> bool:
+def is_free(building: Building, centre: np.ndarray, clearance_m: float = 1.0) -> bool:
     """Returns whether a point is on the ground plane's area and at least clearance_m away from every block."""
     inside_ground = np.all(centre[:2] > building.bounds[0, :2] + clearance_m) and np.all(
         centre[:2] < building.bounds[1, :2] - clearance_m
@@ -158,12 +158,12 @@ def _is_free(building: Building, centre: np.ndarray, clearance_m: float = 1.0) -
     return bool(inside_ground and not np.any(np.all((centre > lo) & (centre < hi), axis=1)))
 
 
-def _street_view(rng: np.random.Generator, building: Building) -> tuple[np.ndarray, np.ndarray]:
+def street_view(rng: np.random.Generator, building: Building) -> tuple[np.ndarray, np.ndarray]:
     """Returns (camera centre, target point) for a random facade seen from the street, not yet checked."""
     facades = [
         (f, length, blk[1, 2])
         for blk in building.blocks
-        for f, length, _ in _block_facades(blk[:, :2].ravel())
+        for f, length, _ in block_facades(blk[:, :2].ravel())
     ]
     areas = np.array([length * h for _, length, h in facades])
     frame, length, height = facades[rng.choice(len(facades), p=areas / areas.sum())]
@@ -173,7 +173,7 @@ def _street_view(rng: np.random.Generator, building: Building) -> tuple[np.ndarr
     return centre, frame.lift(s, rng.uniform(0.2, 0.45) * height)
 
 
-def _aim(rng: np.random.Generator, centre: np.ndarray, target: np.ndarray) -> np.ndarray:
+def aim(rng: np.random.Generator, centre: np.ndarray, target: np.ndarray) -> np.ndarray:
     """Returns (4, 4) cam_from_world looking roughly at target: yaw jitter 10 deg, pitch -5..15 deg, roll 3 deg."""
     to = target - centre
     yaw = np.arctan2(to[1], to[0]) + np.radians(rng.uniform(-10.0, 10.0))
@@ -202,10 +202,10 @@ def camera_poses(
     for _ in range(max_tries * max(n, 1)):
         if len(poses) == n:
             break
-        centre, target = _street_view(rng, building)
-        if not _is_free(building, centre) or occluded(building, centre, target[None])[0]:
+        centre, target = street_view(rng, building)
+        if not is_free(building, centre) or occluded(building, centre, target[None])[0]:
             continue
-        cam_from_world = _aim(rng, centre, target)
+        cam_from_world = aim(rng, centre, target)
         if _sees_enough(building, camera, cam_from_world, min_visible_edges):
             poses.append(cam_from_world)
     if len(poses) < n:

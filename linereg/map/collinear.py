@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .config import Lines3DConfig
+from ..config import Lines3DConfig
 
 _SLACK_M = 0.1  # collinear candidates' midpoints lie this much farther apart, seen along their direction
 

@@ -1,4 +1,4 @@
-"""Terrestrial laser scans of a procedural building (``linereg.building``): what a static scanner records.
+"""Terrestrial laser scans of a procedural building (``linereg.sim.building``): what a static scanner records.
 
 Each scanner fires rays on a regular (azimuth, elevation) grid, so point density falls with range as on
 a real instrument. Visibility comes from a spherical z-buffer: the building is rasterised into the six
@@ -14,11 +14,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..camera import Camera
+from ..errors import InvalidInputError
+from ..geometry import make_cam_from_world
 from .building import Building
-from .camera import Camera
-from .errors import InvalidInputError
-from .geometry import make_cam_from_world
-from .render import _rotate, rasterize
+from .render import rasterize, rotate
 
 log = logging.getLogger(__name__)
 
@@ -169,7 +169,7 @@ def _nearest_hits(
     """Returns (R,) range (inf: no hit) along unit rays (R, 3) to the nearest face among the 2 x 2 cube
     pixels round each ray's image point (cube view rotation ``rot``); hits must lie inside their face.
     """
-    c = _rotate(dirs, rot)
+    c = rotate(dirs, rot)
     u0 = np.clip(np.floor(cube.fx * c[:, 0] / c[:, 2] + cube.cx).astype(np.int64), 0, cube.width - 2)
     v0 = np.clip(np.floor(cube.fy * c[:, 1] / c[:, 2] + cube.cy).astype(np.int64), 0, cube.height - 2)
     flat_ids = face_id.ravel()

@@ -21,12 +21,12 @@ from typing import Any
 
 import numpy as np
 
-from .camera import Camera
-from .config import Lines3DConfig, ParallelConfig
-from .directions import DirectionClusters
-from .errors import FileFormatError, InvalidInputError
-from .geometry import camera_center
-from .registration import check_segments
+from ..camera import Camera
+from ..config import Lines3DConfig, ParallelConfig
+from ..directions import DirectionClusters
+from ..errors import FileFormatError, InvalidInputError
+from ..geometry import camera_center
+from ..registration import check_segments
 
 logger = logging.getLogger(__name__)
 
@@ -88,7 +88,7 @@ class LineMap:
         **metadata: Any,
     ) -> LineMap:
         """Returns the map of given (M, 6) float64 segments; ``tile_m`` defaults to 1/32 of the extent."""
-        from .parallel import parallel_clusters  # imported here: the map format does not depend on it
+        from ..parallel import parallel_clusters  # imported here: the map format does not depend on it
 
         segments = check_segments(lines3d, "lines3d", 6)
         if progress:
@@ -113,7 +113,7 @@ class LineMap:
 
     def save(self, path: str | os.PathLike) -> None:
         """Writes the map to one .npz file, atomically."""
-        from .io import write_bytes_atomic
+        from ..io import write_bytes_atomic
 
         buffer = _bytes_io.BytesIO()
         c = self.clusters
@@ -197,7 +197,7 @@ class LineMap:
             if prior_position is None or radius_m is None:
                 return np.arange(len(self.segments))
             return self.segments_near(prior_position, radius_m)
-        from .matching import project_segments
+        from ..matching import project_segments
 
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
         center = camera_center(cam_from_world) if prior_position is None else prior_position

@@ -17,7 +17,7 @@ from dataclasses import replace
 import numpy as np
 from scipy.spatial import cKDTree
 
-from .config import Lines3DConfig
+from ..config import Lines3DConfig
 from .lines3d import check_points
 
 SAMPLE = 20_000  # points whose nearest-neighbour distance estimates the spacing
