@@ -13,6 +13,7 @@ segments imaging one of ``M`` map segments, a sample is all-correct with probabi
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -158,7 +159,7 @@ def register_ransac6(
         )
     with timer("refine"):
         result = _refine(lines2d, lines3d, camera, best, config)
-    result.runner_up_inliers = max(
+    runner_up = max(
         [
             n
             for n, R in best.tested
@@ -166,8 +167,7 @@ def register_ransac6(
         ],
         default=0,
     )
-    result.timings = timer.finish()
-    return result
+    return dataclasses.replace(result, runner_up_inliers=runner_up, timings=timer.finish())
 
 
 def _ransac(lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: RegisterConfig) -> _Best:

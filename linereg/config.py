@@ -1,7 +1,9 @@
 """Every tunable of the pipeline: one frozen dataclass per stage, defaults documented in code.
 
 Defaults follow the paper (section III) where it gives a value; the rest are ours and say why.
-Override with ``dataclasses.replace`` or ``RegisterConfig.from_dict`` (file / CLI).
+Override with ``dataclasses.replace``, ``RegisterConfig.from_dict`` or a JSON file of overrides
+(``io.read_config``; the CLI's ``--config FILE``). One default configuration serves the API, the CLI and
+the service.
 """
 
 from __future__ import annotations
@@ -130,16 +132,16 @@ class TranslationConfig:
     verify_fraction: float = 0.3  # ... those with at least this fraction of the fullest cell's votes
     # "search": on large maps only the likeliest whole 2D segments (both ends at a corner, then one, then
     # longest) seed, up to this many hypotheses
-    max_hypotheses: int = 20_000
+    max_hypotheses: int = 60_000
     polish_rounds: int = 2  # "search": robust least squares on the coplanarity equations + re-match
     distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
     seed: int = 0
     # many rotation candidates (Manhattan scenes: 24): each is first screened by a "search" with this seed
     # budget (4000 missed the true t on large maps) counting only the few fullest cells, unpolished;
     # only the best ``finalists`` get the full search
-    screen_max_hypotheses: int = 10_000
-    screen_num_verify: int = 4
-    finalists: int = 4
+    screen_max_hypotheses: int = 40_000
+    screen_num_verify: int = 8
+    finalists: int = 6
     finalist_fraction: float = 0.3  # ... and only those screened at >= this fraction of the best count
     # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``; each
     # candidate's runner-up too) are all refined; the best refined fit wins (``pipeline._contest``: 2D
@@ -229,32 +231,6 @@ class RegisterConfig:
     def from_dict(cls, d: dict[str, Any]) -> RegisterConfig:
         """Returns the default config with the keys of ``d`` (nested per section) overridden."""
         return _override(cls(), d, "config")
-
-    @classmethod
-    def preset(cls, name: str) -> RegisterConfig:
-        """Returns the named preset of ``PRESETS`` (``"fast"`` is the default config)."""
-        if name not in PRESETS:
-            raise InvalidInputError(f"unknown preset {name!r}; known: {', '.join(PRESETS)}")
-        return cls.from_dict(PRESETS[name])
-
-
-# Named presets: overrides of the defaults, nested per section (hloc-style, one dict).
-PRESETS: dict[str, dict[str, Any]] = {
-    # the defaults: tuned for the paper's scenes and robot queries (tens of ms on ~100 segments)
-    "fast": {},
-    # large maps of repetitive buildings (windows): every rotation candidate gets a bigger screening budget,
-    # more finalists and 3x the translation hypotheses. On the demo's scan (2,100 map segments) 10/10 images
-    # localize instead of 5/10, at ~0.6 s instead of ~0.4 s per image; synthetic building scenes 80 % instead
-    # of 62 %, but ~1 s; paper scenes gain little (100 lines: 100 % of 20 trials) and take ~40 % longer.
-    "thorough": {
-        "translation": {
-            "screen_max_hypotheses": 40_000,
-            "screen_num_verify": 8,
-            "finalists": 6,
-            "max_hypotheses": 60_000,
-        }
-    },
-}
 
 
 def _override(obj: Any, d: dict[str, Any], path: str) -> Any:

@@ -302,6 +302,17 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
         raise
 
 
+def read_config(path: str | os.PathLike):
+    """Returns the RegisterConfig of a JSON file of overrides, nested per section (``{"match": {...}}``)."""
+    from .config import RegisterConfig
+
+    overrides = read_json(path)
+    try:
+        return RegisterConfig.from_dict(overrides)
+    except InvalidInputError as e:
+        raise InvalidInputError(f"{path}: {e}") from None
+
+
 def read_json(path: str | os.PathLike) -> Any:
     """Returns the parsed JSON of a file; missing or malformed -> FileFormatError naming the file."""
     path = Path(path)

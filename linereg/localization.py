@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import numpy as np
@@ -105,5 +106,5 @@ def _localize_undistorted(
         reason = f"only {len(lines3d)} map segments near the prior; at least {config.min_lines3d} are needed"
         return Registration(success=False, reason=reason, timings=timer.finish())
     result = register_undistorted(lines2d, lines3d, clusters, camera, config, timer)
-    result.matches = np.c_[result.matches[:, 0], visible[result.matches[:, 1]]].astype(np.int64)
-    return result
+    matches = np.c_[result.matches[:, 0], visible[result.matches[:, 1]]].astype(np.int64)
+    return dataclasses.replace(result, matches=matches)

@@ -9,7 +9,7 @@ import numpy as np
 from .errors import InvalidInputError
 
 
-@dataclass
+@dataclass(frozen=True)
 class Registration:
     """Outcome of registering one image; ``success=False`` carries a ``reason`` and no pose.
 

@@ -78,6 +78,7 @@ class LocalizeReply:
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     num_inliers: int = 0
     runner_up_inliers: int = 0
+    inliers_before_refinement: int = 0
     ambiguity: float = 1.0
     rms_px: float = math.nan
     matches: np.ndarray | None = None
@@ -106,6 +107,7 @@ class LocalizeReply:
             covariance=np.asarray(reg.covariance, dtype=np.float64),
             num_inliers=int(reg.num_inliers),
             runner_up_inliers=int(reg.runner_up_inliers),
+            inliers_before_refinement=int(reg.inliers_before_refinement),
             ambiguity=float(reg.ambiguity),
             rms_px=float(reg.rms_px),
             matches=np.asarray(reg.matches, dtype=np.int64).reshape(-1, 2) if return_matches else None,
@@ -126,6 +128,7 @@ class LocalizeReply:
             num_inliers=self.num_inliers,
             covariance=np.array(self.covariance),
             runner_up_inliers=self.runner_up_inliers,
+            inliers_before_refinement=self.inliers_before_refinement,
             rms_px=self.rms_px,
             timings=dict(self.timings),
         )

@@ -31,19 +31,20 @@ def load_engine(spec: str, args: tuple) -> Engine:
     return getattr(importlib.import_module(module_name), func_name)(*args)
 
 
-def load_map_engine(map_path: str, map_name: str | None = None, preset: str = "fast") -> Engine:
-    """Returns the Engine of the real library over the LineMap file ``map_path``, with a config preset."""
+def load_map_engine(map_path: str, map_name: str | None = None, config_path: str | None = None) -> Engine:
+    """Returns the Engine of the real library over the LineMap file ``map_path`` (config: the defaults, or
+    the JSON overrides at ``config_path``)."""
     import linereg
 
     line_map = linereg.LineMap.load(map_path)
     info = dict(line_map.info())
     name = map_name or str(getattr(line_map, "name", "") or info.get("name") or "map")
     engine = _engine(line_map, name, info)
-    engine.config = linereg.RegisterConfig.preset(preset)
+    engine.config = _config(config_path)
     return engine
 
 
-def load_segments_engine(lines3d_path: str, map_name: str, preset: str = "fast") -> Engine:
+def load_segments_engine(lines3d_path: str, map_name: str, config_path: str | None = None) -> Engine:
     """Returns the Engine over a LineMap built from an (M, 6) ``.npy`` of 3D segments (tests, benchmarks)."""
     import numpy as np
 
@@ -51,8 +52,15 @@ def load_segments_engine(lines3d_path: str, map_name: str, preset: str = "fast")
 
     line_map = linereg.LineMap.from_segments(np.load(lines3d_path), name=map_name)
     engine = _engine(line_map, map_name, dict(line_map.info()))
-    engine.config = linereg.RegisterConfig.preset(preset)
+    engine.config = _config(config_path)
     return engine
+
+
+def _config(config_path: str | None):
+    import linereg
+    from linereg import io
+
+    return io.read_config(config_path) if config_path else linereg.RegisterConfig()
 
 
 def _engine(line_map, name: str, info: dict) -> Engine:

@@ -73,9 +73,9 @@ def fake_localize_segments(lines2d, line_map, camera, config=None, prior=None) -
 
 
 def load_fake_engine(
-    map_path: str = "", map_name: str | None = None, preset: str = "fast", startup_s: float = 0.0
+    map_path: str = "", map_name: str | None = None, config_path: str | None = None, startup_s: float = 0.0
 ) -> Engine:
-    """Returns the fake Engine (``map_path``, ``preset`` ignored; ``startup_s`` imitates loading a real map)."""
+    """Returns the fake Engine (``map_path``, ``config_path`` ignored; ``startup_s`` imitates loading a real map)."""
     map_name = map_name or "fake"
     time.sleep(startup_s)
     info = {"name": map_name, "version": "fake-1", "bounds": [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]}

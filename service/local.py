@@ -19,10 +19,13 @@ def free_loopback_endpoint() -> str:
 
 @contextmanager
 def local_service(
-    map_path: str, workers: int = 1, loader: str = "service.engine:load_map_engine", preset: str = "fast"
+    map_path: str,
+    workers: int = 1,
+    loader: str = "service.engine:load_map_engine",
+    config_path: str | None = None,
 ) -> Iterator[Client]:
     """Yields a Client of a service (worker processes, zenoh router on loopback) serving ``map_path``."""
-    config = ServiceConfig(loader=loader, loader_args=(str(map_path), None, preset), workers=workers,
+    config = ServiceConfig(loader=loader, loader_args=(str(map_path), None, config_path), workers=workers,
                            listen=(free_loopback_endpoint(),))  # fmt: skip
     with Service(config) as service, Client(config.listen[0], map_name=service.map_name) as client:
         yield client

@@ -141,7 +141,42 @@ def test_reply_round_trip_gives_back_the_registration():
     reg = protocols.decode_reply(encode(reply)).to_registration()
     assert reg.success and reg.num_inliers == 42 and reg.matches.shape == (2, 2)
     assert np.array_equal(reg.cam_from_world, reply.cam_from_world)
-    assert reg.ambiguity == pytest.approx(7 / 42)
+    assert reg.ambiguity == pytest.approx(7 / 45)  # both counts before refinement, as in-process
+
+
+def test_every_registration_field_crosses_the_wire():
+    """The reply carries all a Registration holds: a field added to one and not the other fails here."""
+    import dataclasses
+
+    from linereg.registration import Registration
+
+    reg = Registration(
+        success=True,
+        reason="",
+        cam_from_world=messages()["reply_ok"].cam_from_world,
+        matches=np.array([[0, 10], [1, 11], [3, 2]], dtype=np.int64),
+        num_inliers=3,
+        covariance=np.diag(np.arange(1.0, 7.0)) * 1e-4,
+        runner_up_inliers=2,
+        rms_px=0.5,
+        inliers_before_refinement=5,
+        timings={"refine": 0.01},
+    )
+    names = {f.name for f in dataclasses.fields(Registration)}
+    defaults = Registration(success=False)
+    assert all(not _equal(getattr(reg, n), getattr(defaults, n)) for n in names - {"reason"}), (
+        "set every field"
+    )
+    reply = protocols.LocalizeReply.from_registration("r", reg, "m", "1", return_matches=True)
+    back = protocols.decode_reply(encode(reply)).to_registration()
+    for name in names:
+        assert _equal(getattr(back, name), getattr(reg, name)), name
+
+
+def _equal(a, b) -> bool:
+    if isinstance(a, np.ndarray):
+        return a.shape == np.shape(b) and bool(np.array_equal(a, b, equal_nan=True))
+    return bool(a == b)
 
 
 def test_keys_are_single_chunks():

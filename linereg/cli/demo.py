@@ -17,11 +17,9 @@ from pathlib import Path
 
 import numpy as np
 
-from ..config import RegisterConfig
 from .progress import Progress
 
 CORRECT_DEG, CORRECT_M = 2.0, 0.5  # a returned pose this close to the truth counts as right
-PRESET = "thorough"  # a large, repetitive map (see linereg.config.PRESETS)
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -79,13 +77,12 @@ def _localizer(map_path: Path, line_map, in_process: bool) -> Iterator[Callable]
     if in_process:
         from ..localization import localize
 
-        config = RegisterConfig.preset(PRESET)
-        yield lambda image, camera: localize(image, line_map, camera, config)
+        yield lambda image, camera: localize(image, line_map, camera)
         return
     from service.local import local_service  # the service layer, imported only by this entry point
 
     say("  starting the localization service on loopback ...")
-    with local_service(str(map_path), workers=1, preset=PRESET) as client:
+    with local_service(str(map_path), workers=1) as client:
         yield lambda image, camera: client.localize(image, camera, timeout=60.0)
 
 

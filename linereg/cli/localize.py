@@ -16,7 +16,6 @@ import time
 from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
-from ..config import PRESETS, RegisterConfig
 from ..errors import InvalidInputError, LineregError
 from .progress import Progress
 
@@ -37,10 +36,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
     p.add_argument("--resume", action="store_true", help="skip images already in --out")
     p.add_argument(
-        "--preset",
-        default="thorough",
-        choices=sorted(PRESETS),
-        help="registration preset (default thorough: batch work favours success over speed)",
+        "--config", type=Path, help="JSON file of registration overrides, nested per section (default: none)"
     )
     p.set_defaults(func=run)
 
@@ -59,7 +55,7 @@ def run(args: argparse.Namespace) -> int:
     jobs = [j for j in jobs if j[0] not in results]
     overlay_dir = str(args.overlay) if args.overlay else None
     progress = Progress(len(jobs), "localize")
-    init = (str(args.map), overlay_dir, args.preset)
+    init = (str(args.map), overlay_dir, str(args.config) if args.config else None)
     last_save = time.monotonic()
     with _executor(args.workers, init) as pool:
         for path, record in pool.map(_localize_one, jobs):
@@ -112,30 +108,27 @@ def _executor(workers: int, init: tuple):
     return ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init)
 
 
-def _init_worker(map_path: str, overlay_dir: str | None, preset: str) -> None:
+def _init_worker(map_path: str, overlay_dir: str | None, config_path: str | None) -> None:
+    from .. import io
+    from ..config import RegisterConfig
     from ..map.linemap import LineMap
 
     _worker_state["map"] = LineMap.load(map_path)
-    _worker_state["config"] = RegisterConfig.preset(preset)
+    _worker_state["config"] = io.read_config(config_path) if config_path else RegisterConfig()
     _worker_state["overlay_dir"] = overlay_dir
 
 
 def _localize_one(job: tuple) -> tuple[str, dict]:
     from .. import io
     from ..lines2d import detect
-    from ..localization import localize_segments
+    from ..localization import localize
     from ..overlay import draw_overlay
 
     path, camera = job
     line_map = _worker_state["map"]
     try:
         image = io.read_image(path)
-        start = time.perf_counter()
-        lines2d = detect(image, camera)
-        detect_s = time.perf_counter() - start
-        result = localize_segments(lines2d, line_map, camera.undistorted(), _worker_state["config"])
-        result.timings = {"lines2d": detect_s} | result.timings
-        result.timings["total"] = result.timings.get("total", 0.0) + detect_s
+        result = localize(image, line_map, camera, _worker_state["config"])
     except LineregError as e:  # a bad input file: named at the end, the batch goes on
         message = str(e) if path in str(e) else f"{path}: {e}"
         return path, {"success": False, "reason": message, "input_error": True}
@@ -144,6 +137,7 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
         return path, {"success": False, "reason": f"{path}: {type(e).__name__}: {e}"}
     overlay_dir = _worker_state["overlay_dir"]
     if overlay_dir:
+        lines2d = detect(image, camera)  # the same segments localize found (detection is deterministic)
         picture = draw_overlay(image, camera.undistorted(), lines2d, line_map.segments, result)
         io.write_image_atomic(os.path.join(overlay_dir, Path(path).stem + ".png"), picture)
     record = result.to_dict()

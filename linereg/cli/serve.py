@@ -4,8 +4,6 @@ from __future__ import annotations
 
 import argparse
 
-from ..config import PRESETS
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Adds the service's flags to ``parser`` (shared with ``python -m service``)."""
@@ -35,7 +33,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--deadline-ms", type=int, default=10_000, help="deadline of requests that set none")
     parser.add_argument("--max-payload-mb", type=float, default=16.0, help="largest accepted request")
     parser.add_argument(
-        "--preset", default="fast", choices=sorted(PRESETS), help="registration preset (default fast)"
+        "--config", help="JSON file of registration overrides, nested per section (default: the defaults)"
     )
     parser.add_argument("--engine", default="service.engine:load_map_engine", help=argparse.SUPPRESS)
     parser.add_argument("--plain-logs", action="store_true", help="text logs instead of JSON lines")
@@ -60,7 +58,7 @@ def config_from_args(args: argparse.Namespace):
     default_listen = () if args.zenoh_config or mode == "client" else (DEFAULT_ENDPOINT,)
     listen = tuple(args.listen) if args.listen else default_listen
     return ServiceConfig(
-        loader=args.engine, loader_args=(args.map, args.name, args.preset), map_name=args.name,
+        loader=args.engine, loader_args=(args.map, args.name, args.config), map_name=args.name,
         instance=args.instance, tile=args.tile, workers=args.workers, queue_size=args.queue, mode=mode,
         threads_per_worker=args.threads_per_worker, listen=listen,
         connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
