@@ -29,20 +29,74 @@ class Lines3DConfig:
     merge_distance_m: float = 0.05  # ... and this close to each other's plane are one
     min_region_points: int = 60
     min_region_area_m2: float = 0.1  # smaller regions (clutter) give neither contours nor creases
-    cell_m: float = 0.0  # raster cell of a region's contour; 0 = 1.5 x the region's estimated point spacing
+    cell_m: float = 0.0  # raster cell of a region's contour; 0 = cell_spacings x the region's point spacing
+    cell_spacings: float = 1.5  # a little coarser than the sampling: few empty cells (false holes) inside
+    # rasters are coarsened beyond this many pixels, to bound memory (a 6 km^2 plane in 1 cm cells: 6e10)
+    max_raster_pixels: int = 40_000_000
     approx_cells: float = 1.5  # polygon approximation tolerance of a contour (cells)
     # contour lines this close to a region's dominant direction take it (a raster staircase, one cell in 9,
     # tilts a line 6 degrees); 0 = off
     snap_angle_deg: float = 10.0
+    # global direction families below this share of the best one's length are chance directions (raster
+    # diagonals, clutter): which of them exist is a matter of rounding, and no line should take theirs
+    family_min_share: float = 0.05
+    family_in_plane_deg: float = 3.0  # a family this close to a region's plane is one of its directions
+    # a contour line is kept if lines sharing its direction hold this share of the region's line length, or
+    # if it is lone_fraction of the region's longer side: a ragged outline's chords go every way, each short
+    dominant_share: float = 0.15
+    lone_fraction: float = 0.25
+    beside_depth_m: float = 0.3  # points of no region this far off a plane may bound it (reveals, ledges)
+    # edge refinement: a raster line tilted more than this to fit the points has no straight edge behind it
+    edge_max_tilt_deg: float = 10.0
+    edge_min_line_points: int = 10  # fewer points along a line: the raster's closing bridged a gap
+    edge_min_bin_points: int = 6  # the outermost of fewer points in a bin says little about the edge
+    # a point this much inside a bin's outermost lies on the scan's next row (nearer: same row, range noise)
+    edge_row_step_m: float = 0.015
+    edge_on_plane_m: float = 0.01  # points of no region this close to a region's plane lie on it (noise)
+    # this many such points beyond an edge (share of the region's points along it): the surface goes on,
+    # only its labels stop (region growing leaves out the points round a crease), so no edge
+    edge_max_going_on: float = 0.2
     min_length_m: float = 0.3  # shorter segments are dropped
     crease_min_angle_deg: float = 20.0  # planes meeting at a larger angle give an intersection line
+    # a crease bounds both regions: this share of each one's points near it lie on one side (a rough
+    # surface's facets crossing mid-way have points on both sides)
+    crease_one_sided: float = 0.8
     collinear_angle_deg: float = 2.0  # segments this parallel ...
     collinear_distance_m: float = 0.04  # ... this close to one line ...
     collinear_gap_m: float = 0.15  # ... and this close along it are merged
+    # candidates: midpoints within 2 collinear_distance_m plus this across their direction group's axis,
+    # room for segments tilted within the angle
+    collinear_slack_m: float = 0.1
     # sides of the direction-aligned rectangles round each region and its rectangular holes are candidate
     # edges too (window panes, ledge strips, window holes span too few raster cells for their contours):
-    # recall 72 % instead of 63 % on the demo scan, but the demo then localizes 6/10 photos, not 10/10
+    # off, as the extra true edges come with edges that mislead localization (docs/measurements.md)
     rectangles: bool = False
+    rectangle_min_fill: float = 0.85  # a contour filling this share of its bounding rectangle is a rectangle
+
+
+@dataclass(frozen=True)
+class MapProfileConfig:
+    """Map-building limits from the cloud's median point spacing s (``map.profile.lines3d_config_for``):
+    a dense RGB-D room shows furniture-scale faces and edges that the building-scale defaults drop."""
+
+    spacing_sample: int = 20_000  # points whose nearest-neighbour distances estimate s
+    length_spacings: float = 12.0  # shortest segment 12 s ...
+    min_length_range_m: tuple[float, float] = (0.15, 0.3)  # ... clipped to this (upper end: the default)
+    area_spacings: float = 15.0  # smallest region (15 s)^2: some 15 points a side give straight contours ...
+    min_area_range_m2: tuple[float, float] = (0.03, 0.1)  # ... clipped to this (upper end: the default)
+
+
+@dataclass(frozen=True)
+class PlaneDirectionsConfig:
+    """Map directions from the dominant planes (``map.plane_directions``): normals and crease directions."""
+
+    normal_angle_deg: float = 3.0  # region normals this close are one plane direction (fits to many points)
+    min_area_share: float = 0.03  # a plane direction holds at least this share of the planar area
+    max_planes: int = 6  # dominant plane directions considered (6 give 15 creases)
+    # planes meeting at a smaller angle give no reliable crease: n_a x n_b amplifies errors by 1 / sin
+    crease_min_angle_deg: float = 20.0
+    in_plane_deg: float = 3.0  # a direction this close to a plane's surface lies in it
+    max_regions: int = 2000  # only the largest regions vote: they hold the area; the (R, R) test stays small
 
 
 @dataclass(frozen=True)
@@ -56,6 +110,8 @@ class VanishingConfig:
     noise_px: float = 2.0
     merge_angle_deg: float = 5.0  # VDs closer than this are one (paper: merge near-duplicates)
     ransac_iterations: int = 200
+    # random segments each hypothesis is scored on (all when fewer): the best stands out on a sample too
+    score_sample: int = 800
     min_lines: int = 3  # smaller clusters are not a direction
     top_k: int = 3  # paper: "the former two or three"
     seed: int = 0
@@ -68,13 +124,16 @@ class ParallelConfig:
     num_clusters: int = 5  # paper: c = 5
     parallel_angle_deg: float = 1.0  # paper: 1 degree for 3D parallel lines
     # endpoint noise (m, std) of extracted map segments: a segment of length L also gets 2*sqrt(2)*noise_m/L
-    # rad of angular slack (real clouds give short, noisy segments: kinect/kitti 0.4-0.7 m long, 2-5 deg
-    # off their direction), capped at max_angle_deg; 0 = the paper's fixed 1 degree
+    # rad of angular slack (real clouds give short segments whose directions are off by degrees, which the
+    # fixed 1 degree leaves unclustered), capped at max_angle_deg; 0 = the paper's fixed 1 degree
     noise_m: float = 0.02
     max_angle_deg: float = 8.0
-    # as for VDs: with the noise slack, one real direction (kitti's street) can come out as two 3-4 deg apart
+    # as for VDs: with the noise slack, one real direction can come out as two clusters a few degrees apart
     merge_angle_deg: float = 5.0
     ransac_iterations: int = 100
+    # random segments each hypothesis is scored on (all when fewer): 1000 estimate a cluster's share of the
+    # length to ~1.5 % (binomial std), all that choosing the best needs
+    score_sample: int = 1000
     min_lines: int = 3
     top_k: int = 3
     seed: int = 0
@@ -84,14 +143,12 @@ class ParallelConfig:
 class RotationConfig:
     """Rotation candidates from VD <-> 3D direction pairings."""
 
-    # angle(VD1, VD2) must match angle(D1, D2) within this; VDs of ~25 short segments at 2 px noise are off
-    # by 2-5 deg (their distance from the image is poorly fixed), so 5 would reject true pairings
+    # angle(VD1, VD2) must match angle(D1, D2) within this; VDs of a few dozen short, noisy segments are off
+    # by degrees (their distance from the image is poorly fixed), so a tight tolerance rejects true pairings
     pair_angle_tolerance_deg: float = 8.0
     third_pair_tolerance_deg: float = 8.0  # a third pair validates a candidate within this (same reason)
     dedupe_angle_deg: float = 1.0  # candidates closer than this are one
-    min_pair_angle_deg: float = (
-        10.0  # two directions closer than this to (anti)parallel cannot fix a rotation
-    )
+    min_pair_angle_deg: float = 10.0  # directions closer than this to (anti)parallel cannot fix a rotation
     top_k: int = 3  # pairings are tried among the strongest top_k VDs and top_k 3D clusters
     max_candidates: int = 24
     # "separate": image share of the paired VDs + map share of the paired clusters, the angles decide which
@@ -100,9 +157,7 @@ class RotationConfig:
     # when a third pair confirms some candidates, this many others follow them (0: only the confirmed; a
     # spurious confirmation then leaves only wrong ones); each costs a translation screening
     max_unconfirmed: int = 8
-    refit: bool = (
-        True  # re-fit each candidate's R to the member segments of its paired VDs (not just the VDs)
-    )
+    refit: bool = True  # re-fit each candidate's R to the member segments of its paired VDs, not the VDs
 
 
 @dataclass(frozen=True)
@@ -190,16 +245,15 @@ class Ransac6Config:
 class LineDetectConfig:
     """2D segments: OpenCV LSD, then merging of collinear fragments and removal of short isolated ones."""
 
-    lsd_scale: float = (
-        0.7  # LSD's Gaussian subsampling (OpenCV default 0.8): lower is faster, fewer fragments
-    )
-    max_work_pixels: int = (
-        600_000  # bigger images are subsampled further so LSD sees at most this many pixels
-    )
+    lsd_scale: float = 0.7  # LSD's Gaussian subsampling (OpenCV default 0.8): lower: faster, fewer fragments
+    max_work_pixels: int = 600_000  # bigger images are subsampled further: LSD sees at most this many pixels
     # LSD runs on this many overlapping bands of the image (merging rejoins segments cut at a band's edge),
     # in parallel threads when OpenCV may use them (cv2.getNumThreads() > 1), else one after the other; a
     # fixed count, so that an image gives the same segments on any machine, in a worker or not
     lsd_bands: int = 2
+    # px of LSD's subsampled image a band reaches into its neighbours: a line cut at a band's edge keeps a
+    # piece longer than LSD's smallest region in each band, or lies whole in one band
+    lsd_band_overlap_px: float = 12.0
     merge_angle_deg: float = 3.0  # fragments whose directions differ by more are not one line
     merge_offset_px: float = 1.5  # every fragment endpoint must lie within this of the merged line
     merge_gap_frac: float = 0.02  # largest gap bridged, fraction of the image diagonal (paper: 60 px)

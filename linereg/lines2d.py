@@ -32,7 +32,7 @@ __all__ = [
     "to_gray8",
 ]
 
-_FLOAT_DTYPES = (np.float16, np.float32, np.float64)
+FLOAT_DTYPES = (np.float16, np.float32, np.float64)  # float image dtypes ``to_gray8`` accepts
 
 
 def detect(image: np.ndarray, camera: Camera, config: LineDetectConfig | None = None) -> np.ndarray:
@@ -62,7 +62,7 @@ def to_gray8(image: np.ndarray) -> np.ndarray:
     """Returns the (H, W) uint8 grey version of an image; 16-bit and float are stretched robustly."""
     if not isinstance(image, np.ndarray):
         raise InvalidInputError(f"image must be a numpy array, got {type(image).__name__}")
-    if image.dtype not in (np.uint8, np.uint16, *_FLOAT_DTYPES):
+    if image.dtype not in (np.uint8, np.uint16, *FLOAT_DTYPES):
         raise InvalidInputError(f"image dtype must be uint8, uint16 or float, got {image.dtype}")
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[:, :, 0]
@@ -75,7 +75,7 @@ def to_gray8(image: np.ndarray) -> np.ndarray:
         image = cv2.cvtColor(np.ascontiguousarray(image), code)
     if image.dtype == np.uint8:
         return image
-    # OpenCV's single vectorised passes: numpy's chains of float temporaries took ~15 ms at 1080p
+    # OpenCV's single vectorised passes: numpy's chains of float temporaries cost several times more
     if image.dtype.kind == "f":
         lo, hi = float(image.min()), float(image.max())  # NaN propagates, and inf is a bound
         if not (math.isfinite(lo) and math.isfinite(hi)):
@@ -105,9 +105,9 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
 
     LSD subsamples by ``lsd_scale`` itself, further for images above ``max_work_pixels``; below half
     size its Gaussian gets costly, so very large images are first halved by area averaging (the
-    endpoints are scaled back). LSD is single-threaded, so the image is cut into ``lsd_bands``
-    overlapping bands detected in parallel (OpenCV releases the GIL); a segment cut at a band's edge
-    comes back as overlapping pieces that ``merge_collinear`` joins.
+    endpoints are scaled back). LSD is single-threaded, so the image is cut into ``lsd_bands`` bands
+    overlapping by ``lsd_band_overlap_px``, detected in parallel (OpenCV releases the GIL); a segment cut
+    at a band's edge comes back as overlapping pieces that ``merge_collinear`` joins.
     """
     total = min(config.lsd_scale, math.sqrt(config.max_work_pixels / gray.size))  # of the full image
     small, scale = gray, total
@@ -116,7 +116,7 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
         small = cv2.resize(small, half, interpolation=cv2.INTER_AREA)
         scale = total * gray.shape[1] / small.shape[1]
     axis = 1 if small.shape[1] >= small.shape[0] else 0  # cut the longer side
-    overlap = math.ceil(_BAND_OVERLAP_PX / scale)
+    overlap = math.ceil(config.lsd_band_overlap_px / scale)
     n = max(1, min(lsd_bands(config), small.shape[axis] // (4 * overlap + 1)))  # no thin bands
     cuts = np.linspace(0, small.shape[axis], n + 1).round().astype(int)
     found: list[np.ndarray] = [np.zeros((0, 4))] * n
@@ -133,11 +133,6 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
         factor = np.array([gray.shape[1] / small.shape[1], gray.shape[0] / small.shape[0]] * 2)
         segments = (segments + 0.5) * factor - 0.5
     return segments
-
-
-# px of LSD's subsampled image a band reaches into its neighbours: a line cut at a band's edge keeps a
-# piece longer than LSD's smallest region in each band, or lies whole in one band
-_BAND_OVERLAP_PX = 12.0
 
 
 def lsd_bands(config: LineDetectConfig) -> int:

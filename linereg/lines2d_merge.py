@@ -54,7 +54,7 @@ def _unique_pairs(pairs: np.ndarray, n: int, first_new: int = 0) -> np.ndarray:
     and pairs whose both indices are below ``first_new``."""
     lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
     code = np.sort((lo * n + hi)[(lo != hi) & (hi >= first_new)])
-    first = np.ones(len(code), dtype=bool)  # np.unique is 10x slower here (numpy 2.4 hashes)
+    first = np.ones(len(code), dtype=bool)  # np.unique is much slower here (numpy 2.4 hashes)
     first[1:] = code[1:] != code[:-1]
     code = code[first]
     return np.stack([code // n, code % n], axis=1).astype(np.int64, copy=False)

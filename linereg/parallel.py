@@ -25,8 +25,6 @@ from .errors import InvalidInputError
 
 logger = logging.getLogger(__name__)
 
-_SCORE_SAMPLE = 1000  # segments a RANSAC hypothesis is scored on (all of them when fewer)
-
 
 def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None) -> DirectionClusters:
     """Returns the dominant 3D directions (world frame, z >= 0) of (M, 6) float64 segments, strongest first.
@@ -41,13 +39,13 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
     rng = np.random.default_rng(config.seed)
     left = usable.copy()  # not yet in a cluster
     # one (H, S) work buffer for all rounds: fresh large temporaries cost more in page faults than the math
-    work = np.empty(config.ransac_iterations * min(len(d), _SCORE_SAMPLE), dtype=np.float32)
+    work = np.empty(config.ransac_iterations * min(len(d), config.score_sample), dtype=np.float32)
     found: list[np.ndarray] = []
     labels = np.full(len(d), -1, dtype=np.int64)
     for _ in range(config.num_clusters):
         if np.count_nonzero(left) < max(config.min_lines, 1):
             break
-        members = _best_cluster(d, lengths, left, cos_thr, config.ransac_iterations, rng, work)
+        members = _best_cluster(d, lengths, left, cos_thr, config, rng, work)
         if np.count_nonzero(members) < config.min_lines:
             break
         labels[members] = len(found)
@@ -75,7 +73,7 @@ def tolerance_rad(lengths: np.ndarray, config: ParallelConfig) -> np.ndarray:
 
 def _directions_and_lengths(lines3d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((M, 3) unit directions, (M,) lengths) in one pass (``geometry.segment_directions`` and
-    ``segment_lengths`` in one: at 10^4 segments the temporaries of two passes cost ~1 ms)."""
+    ``segment_lengths`` in one: the temporaries of two passes cost more than the arithmetic)."""
     d = lines3d[:, 3:6] - lines3d[:, 0:3]
     lengths = np.sqrt(np.einsum("ij,ij->i", d, d))
     d /= np.maximum(lengths, 1e-300)[:, None]
@@ -87,22 +85,23 @@ def _best_cluster(
     w: np.ndarray,
     left: np.ndarray,
     cos_thr: np.ndarray,
-    iterations: int,
+    config: ParallelConfig,
     rng: np.random.Generator,
     work: np.ndarray,
 ) -> np.ndarray:
     """Returns the (M,) bool members among ``left`` of the best sign-free parallel set, after one refit.
 
-    cos_thr: (M,) cosine of each segment's tolerance. Hypotheses (segments drawn by length) are scored
-    (MSAC, lengths ``w``) on at most ``_SCORE_SAMPLE`` random segments left: a cluster's share of the length
-    is estimated to ~1.5 % from them, which is all choosing the best needs; its members then come from all
-    segments left. The refit weighs members by ``w^2`` (a direction's error ~ noise / length).
+    cos_thr: (M,) cosine of each segment's tolerance. ``ransac_iterations`` hypotheses (segments drawn by
+    length) are scored (MSAC, lengths ``w``) on at most ``score_sample`` random segments left, which
+    estimate a cluster's share of the length well enough to choose the best; its members then come from
+    all segments left. The refit weighs members by ``w^2`` (a direction's error ~ noise / length).
     ``work``: float32 buffer of >= iterations * S elements.
     """
+    iterations = config.ransac_iterations
     idx = np.flatnonzero(left)
     hypotheses = d[idx[sample_weighted(w[idx], iterations, rng)]].astype(np.float32)
-    if len(idx) > _SCORE_SAMPLE:
-        idx = idx[rng.integers(0, len(idx), _SCORE_SAMPLE)]
+    if len(idx) > config.score_sample:
+        idx = idx[rng.integers(0, len(idx), config.score_sample)]
     score = work[: iterations * len(idx)].reshape(iterations, len(idx))
     np.matmul(hypotheses, d[idx].T.astype(np.float32), out=score)  # (H, S): all hypotheses against all
     np.abs(score, out=score)

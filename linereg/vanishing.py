@@ -30,8 +30,6 @@ from .parallel import (
 
 logger = logging.getLogger(__name__)
 
-_SCORE_SAMPLE = 800  # segments a RANSAC hypothesis is scored on (all of them when fewer)
-
 
 class _SegmentTest(NamedTuple):
     """Per-segment terms of the midpoint-to-VP angle test, so that an (H, N) test is two matrix products.
@@ -60,7 +58,7 @@ def vanishing_directions(
     rng = np.random.default_rng(config.seed)
     left = usable.copy()  # not yet in a cluster
     # one work buffer for all rounds: fresh (H, N) temporaries cost more in page faults than the math
-    work = np.empty(2 * config.ransac_iterations * min(len(lines2d), _SCORE_SAMPLE))
+    work = np.empty(2 * config.ransac_iterations * min(len(lines2d), config.score_sample))
     found: list[np.ndarray] = []
     found_labels = np.full(len(lines2d), -1, dtype=np.int64)
     for _ in range(config.num_clusters):
@@ -108,8 +106,8 @@ def _best_vd(
     hyp = hyp[norm > 1e-9] / norm[norm > 1e-9, None]  # drops a == b and (near-)collinear pairs
     if len(hyp) == 0:
         return np.zeros(3), np.zeros(len(left), dtype=bool)
-    if len(idx) > _SCORE_SAMPLE:  # score on a random subset: the best hypothesis stands out all the same
-        idx = idx[rng.integers(0, len(idx), _SCORE_SAMPLE)]
+    if len(idx) > config.score_sample:  # a random subset: the best hypothesis stands out all the same
+        idx = idx[rng.integers(0, len(idx), config.score_sample)]
     sub = _SegmentTest(test.A[:, idx], test.Q[:, idx])
     score = _ratios(sub, K, hyp, work)  # (H, S): every hypothesis against every (sampled) segment
     # MSAC: an inlier adds its length times (1 - ratio), so VDs that segments point at exactly win over

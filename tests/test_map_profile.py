@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from linereg.config import Lines3DConfig
+from linereg.config import Lines3DConfig, MapProfileConfig
 from linereg.errors import InvalidInputError
 from linereg.map.profile import lines3d_config_for, point_spacing_m
 
@@ -30,6 +30,12 @@ def test_dense_clouds_keep_small_structure_sparse_ones_keep_the_defaults():
     assert sparse.min_region_area_m2 == defaults.min_region_area_m2
     base = Lines3DConfig(voxel_m=0.2)
     assert lines3d_config_for(grid_points(0.01), base).voxel_m == 0.2  # everything else is kept
+
+
+def test_profile_follows_its_config():
+    wider = MapProfileConfig(min_length_range_m=(0.1, 0.3), min_area_range_m2=(0.01, 0.1))
+    dense = lines3d_config_for(grid_points(0.01), config=wider)
+    assert dense.min_length_m == pytest.approx(0.12) and dense.min_region_area_m2 == pytest.approx(0.0225)
 
 
 def test_bad_input():

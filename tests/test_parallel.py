@@ -162,3 +162,12 @@ def test_diverse_order():
     np.testing.assert_array_equal(diverse_order(directions, np.array([10.0, 9.0, 5.0, 4.0]), 3), [0, 2, 3])
     np.testing.assert_array_equal(diverse_order(directions, np.array([10.0, 9.0, 5.0, 4.0]), 9), [0, 2, 3, 1])
     assert len(diverse_order(np.zeros((0, 3)), np.zeros(0), 3)) == 0
+
+
+def test_scoring_on_a_small_sample_finds_the_same_directions(rng):
+    # hypotheses are scored on ``score_sample`` random segments; a small sample still ranks the true ones
+    lines3d, _ = segments_along(rng, DIRECTIONS, [600, 400, 200], jitter_deg=0.2)
+    sampled = parallel_clusters(lines3d, ParallelConfig(score_sample=100))
+    assert len(sampled) == 3
+    for k, d in enumerate(DIRECTIONS):
+        assert angle_deg(sampled.directions[k], d) < 0.1

@@ -1,6 +1,7 @@
 import numpy as np
 import pytest
 
+from linereg.config import PlaneDirectionsConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import axis_angle_deg
 from linereg.map.plane_directions import dominant_normals, map_clusters, plane_directions
@@ -45,6 +46,15 @@ def test_dominant_normals_of_a_room(rng):
         assert angle_deg(got, want) < 0.5
     assert np.all(np.diff(found_area) <= 0)
     assert found_area[0] == pytest.approx(20.0, rel=0.05)
+
+
+def test_dominant_normals_follow_the_config(rng):
+    normals, areas = room_regions(rng)
+    found, _ = dominant_normals(normals, areas, PlaneDirectionsConfig(max_planes=2))
+    assert len(found) == 2  # the floor and the larger wall
+    assert angle_deg(found[0], FLOOR) < 0.5 and angle_deg(found[1], WALL_A) < 0.5
+    few, _ = dominant_normals(normals, areas, PlaneDirectionsConfig(max_regions=20))
+    assert len(few) == 1  # only the 20 largest regions (the floor's) vote
 
 
 def test_plane_directions_are_the_manhattan_axes(rng):

@@ -29,7 +29,7 @@ def _brute_neighbors(vox, index, offsets):
 @pytest.fixture(params=["table", "search"])
 def lookup(request, monkeypatch):
     if request.param == "search":
-        monkeypatch.setattr(voxels_module, "_MAX_TABLE_CELLS", 0)
+        monkeypatch.setattr(voxels_module, "MAX_TABLE_CELLS", 0)
     return request.param
 
 

@@ -175,3 +175,12 @@ def test_other_intrinsics(rng):
     vds = vanishing_directions(lines2d, camera)
     for d in DIRECTIONS:
         assert min(angle_deg(v, R_TRUE @ d) for v in vds.directions) < 1e-5
+
+
+def test_scoring_on_a_small_sample_finds_the_same_directions(camera, rng):
+    # hypotheses are scored on ``score_sample`` random segments; a small sample still ranks the true ones
+    lines2d, _ = image_of_directions(rng, camera, DIRECTIONS, 150, noise_px=0.5)
+    found = vanishing_directions(lines2d, camera, VanishingConfig(score_sample=60))
+    assert len(found) == 3
+    for d in DIRECTIONS:
+        assert min(angle_deg(v, R_TRUE @ d) for v in found.directions) < 0.5

@@ -8,8 +8,6 @@ from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
 
-_SLACK_M = 0.1  # collinear candidates' midpoints lie this much farther apart, seen along their direction
-
 
 def drop_near(
     segments: np.ndarray, reference: np.ndarray, distance: np.ndarray, angle_deg: float
@@ -75,8 +73,8 @@ def _collinear_pairs(p: np.ndarray, q: np.ndarray, dirs: np.ndarray, config: Lin
     along the seed's line (from the seed's start).
 
     Candidates are the segments of one direction group whose midpoints, seen along the group's
-    direction, lie within _SLACK_M of each other: all pairs but those of long lines both tilted within
-    the angle, far apart along them.
+    direction, lie within 2 collinear_distance_m + collinear_slack_m of each other: all pairs but those of
+    long lines both tilted within the angle, far apart along them.
     """
     mid = 0.5 * (p + q)
     seeds, members = [], []
@@ -86,7 +84,7 @@ def _collinear_pairs(p: np.ndarray, q: np.ndarray, dirs: np.ndarray, config: Lin
         axis = dirs[group[0]]
         across = np.linalg.svd(np.eye(3) - np.outer(axis, axis))[0][:, :2]  # two axes normal to it
         pairs = cKDTree(mid[group] @ across).query_pairs(
-            2.0 * config.collinear_distance_m + _SLACK_M, output_type="ndarray"
+            2.0 * config.collinear_distance_m + config.collinear_slack_m, output_type="ndarray"
         )
         seeds.append(group[np.r_[pairs[:, 0], pairs[:, 1]]])
         members.append(group[np.r_[pairs[:, 1], pairs[:, 0]]])

@@ -12,8 +12,6 @@ import numpy as np
 
 from ..config import Lines3DConfig
 
-_MAX_RASTER_PIXELS = 40_000_000  # a region's raster is coarsened beyond this (a 6 km^2 plane at 1 cm...)
-
 
 def plane_basis(normal: np.ndarray) -> np.ndarray:
     """Returns (2, 3) in-plane unit axes; the first follows the world axis most parallel to the plane, so
@@ -28,7 +26,7 @@ def region_image(uv: np.ndarray, cell: float, config: Lines3DConfig) -> tuple[np
     """Returns ((H, W) uint8 occupancy image, (2,) plane coordinates of pixel (0, 0)'s corner, cell) of
     (n, 2) in-plane points; sampling gaps closed, holes and islands too small to hold an edge removed."""
     extent = np.ptp(uv, axis=0) if len(uv) else np.zeros(2)
-    cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / _MAX_RASTER_PIXELS)))
+    cell = max(cell, float(np.sqrt(np.prod(extent + 4 * cell) / config.max_raster_pixels)))
     lo = uv.min(axis=0) - 2 * cell  # a 2-cell empty border: contours never touch the image edge
     # the extreme points lie on a cell border by construction: a hair inside keeps rounding from deciding
     ij = np.floor((uv - lo) / cell + 1e-6).astype(np.int64)

@@ -12,8 +12,6 @@ from scipy.spatial import cKDTree
 from ..config import Lines3DConfig
 from .planes import Planes
 
-_ONE_SIDED = 0.8  # share of a region's points near a crease that must lie on the same side of it
-
 
 def crease_segments(
     points: np.ndarray,
@@ -35,6 +33,7 @@ def crease_segments(
         r: (points[members[r]].min(axis=0), points[members[r]].max(axis=0)) for r in np.unique(pairs[keep])
     }
     trees: dict[int, cKDTree] = {}
+    share = config.crease_one_sided
     for (a, b), direction in zip(pairs[keep], directions[keep] / sines[keep, None], strict=True):
         na, nb = planes.normals[a], planes.normals[b]
         cell = max(cells[a], cells[b])
@@ -48,20 +47,20 @@ def crease_segments(
         ta, perp_a = _near_line(points, members[a], trees, a, origin, direction, span, 3 * cell)
         tb, perp_b = _near_line(points, members[b], trees, b, origin, direction, span, 3 * cell)
         for t0, t1 in _common_runs(ta, tb, cell, config):
-            if _one_sided(ta, perp_a, t0, t1) and _one_sided(tb, perp_b, t0, t1):
+            if _one_sided(ta, perp_a, t0, t1, share) and _one_sided(tb, perp_b, t0, t1, share):
                 out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
     return np.array(out).reshape(-1, 6)
 
 
-def _one_sided(t: np.ndarray, perp: np.ndarray, t0: float, t1: float) -> bool:
-    """Returns whether a region's points near a crease run lie on one side of it: a crease bounds both
-    regions, while facets of a rough surface that cross mid-way have points on both sides."""
+def _one_sided(t: np.ndarray, perp: np.ndarray, t0: float, t1: float, share: float) -> bool:
+    """Returns whether at least ``share`` of a region's points near a crease run lie on one side of it: a
+    crease bounds both regions, while facets of a rough surface that cross mid-way have points on both sides."""
     inside = (t >= t0) & (t <= t1)
     if not inside.any():
         return False
     p = perp[inside]
     side = p @ (p.sum(axis=0) / max(np.linalg.norm(p.sum(axis=0)), 1e-12))
-    return bool(max((side > 0).mean(), (side < 0).mean()) >= _ONE_SIDED)
+    return bool(max((side > 0).mean(), (side < 0).mean()) >= share)
 
 
 def _overlap(box_a, box_b, origin: np.ndarray, direction: np.ndarray, margin: float):

@@ -12,18 +12,14 @@ import itertools
 import numpy as np
 from scipy.spatial import cKDTree
 
-_MAX_TILT = np.tan(np.radians(10.0))  # the most a boundary line's angle is corrected from the points
-_MIN_BIN_POINTS = 6  # the maximum of fewer points says little
-_MIN_LINE_POINTS = 10
-_LEVEL_M = 0.015  # points this much farther inside than the last one are on another row of the scan
-_ON_PLANE_M = 0.01  # points of no region this close to a region's plane lie on it (range noise)
-_MAX_GOING_ON = 0.2  # such points beyond an edge, as many as this share of the region's points along it
+from ..config import Lines3DConfig
 
 
 def refine_edges(
     uv: np.ndarray,
     lines: np.ndarray,
     band: float,
+    config: Lines3DConfig,
     beside: np.ndarray | None = None,
     fixed: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -33,8 +29,8 @@ def refine_edges(
     Along the line, bins of ``band`` length: the outermost of n points spread uniformly over
     [-band, e] lies on average (e + band) / (n + 1) inside the edge e, so e = o_max + (o_max + band) / n
     per bin, but not beyond the first point off the region there; a weighted least-squares line through
-    the bins' e gives offset and angle. Lines this would tilt by more than 10 degrees, or with most bins
-    off the fitted edge, are dropped.
+    the bins' e gives offset and angle. Lines this would tilt by more than edge_max_tilt_deg, or with most
+    bins off the fitted edge, are dropped (the ``edge_*`` fields of ``config``).
     uv: (n, 2) region points in plane coordinates; lines: (k, 4); beside: (q, 3) u, v, signed distance
     from the plane of points of no region near it, or None; fixed: (k,) bool lines whose direction is
     known (a dominant direction): only their offset is fitted.
@@ -54,22 +50,22 @@ def refine_edges(
     count = np.bincount(line, minlength=k)
     t_lo, t_hi = _group_min(t, line, k), -_group_min(-t, line, k)
     # no points along most of it: the raster's closing bridged a gap, no boundary of the surface
-    ok = (count >= _MIN_LINE_POINTS) & (t_hi - t_lo >= 0.5 * (length - band))
+    ok = (count >= config.edge_min_line_points) & (t_hi - t_lo >= 0.5 * (length - band))
     outward = -np.sign(np.bincount(line, s, k))  # the points lie on the inner side
     fixed = np.zeros(k, dtype=bool) if fixed is None else fixed
     geometry = (a, d, m * outward[:, None], length)
     pairs = _beside_pairs(beside, geometry, band)
-    on_plane = np.abs(pairs[:, 3]) < _ON_PLANE_M
+    on_plane = np.abs(pairs[:, 3]) < config.edge_on_plane_m
     off = pairs[~on_plane]
     o = outward[line] * s
     # the free fit tells whether a straight edge lies behind the line (a ragged outline's chords snap
     # onto a family direction too); lines too short for it (one bin) may still take a known direction
-    slope, intercept, on_line = _edge_lines(line, t, o, t_lo, band, np.zeros(k, dtype=bool), off)
+    slope, intercept, on_line = _edge_lines(line, t, o, t_lo, band, np.zeros(k, dtype=bool), off, config)
     ends = np.clip(intercept[:, None] + slope[:, None] * np.stack([np.zeros(k), length], 1), -band, band)
     straight = (on_line >= 0.5 * (length - band) / band) & (
-        np.abs(ends[:, 1] - ends[:, 0]) <= length * _MAX_TILT
+        np.abs(ends[:, 1] - ends[:, 0]) <= length * np.tan(np.radians(config.edge_max_tilt_deg))
     )
-    _, intercept0, on_line0 = _edge_lines(line, t, o, t_lo, band, fixed, off)
+    _, intercept0, on_line0 = _edge_lines(line, t, o, t_lo, band, fixed, off, config)
     short = fixed & ~np.isfinite(slope) & (on_line0 >= 1)
     ok &= straight | short
     ends[fixed] = np.clip(intercept0[fixed, None], -band, band)
@@ -77,7 +73,7 @@ def refine_edges(
     # growing leaves out the points round a crease, for one)
     on = pairs[on_plane]
     beyond = on[:, 2] > np.nan_to_num(ends[on[:, 0].astype(np.int64)].max(axis=1), nan=band)
-    ok &= np.bincount(on[beyond, 0].astype(np.int64), minlength=k) < _MAX_GOING_ON * count
+    ok &= np.bincount(on[beyond, 0].astype(np.int64), minlength=k) < config.edge_max_going_on * count
     shift = (outward[:, None, None] * ends[..., None]) * m[:, None, :]
     return np.concatenate([a + shift[:, 0], b + shift[:, 1]], axis=1), ok
 
@@ -130,6 +126,7 @@ def _edge_lines(
     band: float,
     fixed: np.ndarray,
     off: np.ndarray,
+    config: Lines3DConfig,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Returns (k,) slope, intercept (NaN: no fit) and bins on it of the edge e(t) behind each line's
     points at (t, outward offset o); bins on it are the band-long stretches whose edge estimate lies
@@ -147,7 +144,7 @@ def _edge_lines(
     edge = top + (top + band) / count
     # a scanner samples in rows and columns: the last one lies on average half their spacing inside the
     # edge, the spacing being the gap down to the next line of points (typical over the line's bins)
-    lower = o < top[inverse] - _LEVEL_M
+    lower = o < top[inverse] - config.edge_row_step_m
     second = -_group_min(-o[lower], inverse[lower], len(key))
     has = np.isfinite(second)
     gap = _group_median((top - second)[has], owner[has], k)
@@ -156,7 +153,7 @@ def _edge_lines(
     # other surface is behind it, seen through the gap, or meets it there)
     first = _first_beyond(off, key, top, t_lo, num_bins, band)
     edge = np.minimum(edge, first)
-    good = count >= _MIN_BIN_POINTS
+    good = count >= config.edge_min_bin_points
     owner, centre, edge, weight = owner[good], centre[good], edge[good], count[good].astype(np.float64)
     slope, intercept = _weighted_fit(owner, centre, edge, weight, fixed)
     residual = np.abs(edge - (slope[owner] * centre + intercept[owner]))

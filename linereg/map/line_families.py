@@ -9,11 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-_LONE_FRACTION = 0.25  # a line off its region's dominant directions is kept if this long (of its size)
-_DOMINANT_SHARE = 0.15  # a dominant direction holds this share of a region's line length
-_MIN_SHARE = 0.05  # a global family holds this share of the best supported one's length at least
-_MIN_FILL = 0.85  # a contour filling this share of its bounding rectangle is a rectangle
-_IN_PLANE_DEG = 3.0  # a global direction this close to a region's plane is one of its directions
+from ..config import Lines3DConfig
 
 
 def _undirected_angle(theta: np.ndarray, ref: np.ndarray) -> np.ndarray:
@@ -21,19 +17,19 @@ def _undirected_angle(theta: np.ndarray, ref: np.ndarray) -> np.ndarray:
     return np.abs((theta - ref + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
 
 
-def dominant_directions(segments: np.ndarray, max_angle_deg: float) -> tuple[np.ndarray, np.ndarray]:
+def dominant_directions(segments: np.ndarray, config: Lines3DConfig) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((F, 3) unit directions, (F,) support: summed length) of the major families of (N, 6)
     segments.
 
-    Greedy, longest first: a seed takes every free segment within max_angle_deg; the family's direction is
+    Greedy, longest first: a seed takes every free segment within snap_angle_deg; the family's direction is
     the principal axis of its members' directions weighted by length^2 (long lines are the exact ones).
-    Families holding less than _MIN_SHARE of the best supported one are left out.
+    Families holding less than family_min_share of the best supported one are left out.
     """
     d = segments[:, 3:] - segments[:, :3]
     length = np.linalg.norm(d, axis=1)
     keep = length > 1e-9
     d, length = d[keep] / length[keep, None], length[keep]
-    cos_thr = np.cos(np.radians(max_angle_deg))
+    cos_thr = np.cos(np.radians(config.snap_angle_deg))
     free = np.ones(len(d), dtype=bool)
     dirs, support = [], []
     for seed in np.argsort(-length, kind="stable"):
@@ -47,22 +43,23 @@ def dominant_directions(segments: np.ndarray, max_angle_deg: float) -> tuple[np.
         support.append(length[members].sum())
     # the rest are chance directions (raster diagonals, clutter): which of them exist is a matter of
     # rounding, and no line should take their direction
-    major = np.array(support) >= _MIN_SHARE * max(support, default=0.0)
+    major = np.array(support) >= config.family_min_share * max(support, default=0.0)
     return np.array(dirs).reshape(-1, 3)[major], np.array(support)[major]
 
 
 def snap_to_families(
-    lines: np.ndarray, basis: np.ndarray, families: tuple[np.ndarray, np.ndarray], max_angle_deg: float
+    lines: np.ndarray, basis: np.ndarray, families: tuple[np.ndarray, np.ndarray], config: Lines3DConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((k, 4) lines, (k,) bool snapped): (k, 4) 2D lines of a region with in-plane axes (2, 3)
-    ``basis`` turned about their midpoints onto the best supported global family within max_angle_deg
-    that holds at least twice their length."""
+    ``basis`` turned about their midpoints onto the best supported global family within snap_angle_deg
+    (of those within family_in_plane_deg of the plane) that holds at least twice their length."""
     dirs, support = families
+    max_angle_deg = config.snap_angle_deg
     if len(lines) == 0 or len(dirs) == 0 or max_angle_deg <= 0:
         return lines, np.zeros(len(lines), dtype=bool)
     flat = dirs @ basis.T  # (F, 2) in-plane components
     norm = np.linalg.norm(flat, axis=1)
-    in_plane = norm >= np.cos(np.radians(_IN_PLANE_DEG))
+    in_plane = norm >= np.cos(np.radians(config.family_in_plane_deg))
     phi = np.arctan2(flat[in_plane, 1], flat[in_plane, 0])
     d = lines[:, 2:] - lines[:, :2]
     length = np.linalg.norm(d, axis=1)
@@ -87,10 +84,10 @@ def _turn(lines: np.ndarray, direction: np.ndarray, which: np.ndarray) -> np.nda
     return out
 
 
-def has_parallel(lines: np.ndarray, size: float, snap_angle_deg: float) -> np.ndarray:
+def has_parallel(lines: np.ndarray, size: float, config: Lines3DConfig) -> np.ndarray:
     """Returns (k,) bool: lines of one region that follow one of its dominant directions, i.e. whose
     direction (within snap_angle_deg) other lines share with at least their own length and with
-    _DOMINANT_SHARE of the region's whole line length, or that are long (_LONE_FRACTION of the region's
+    dominant_share of the region's whole line length, or that are long (lone_fraction of the region's
     ``size``, its longer side).
 
     Man-made boundaries come in a few parallel families (both sides of a window, ledge, facade), while a
@@ -102,10 +99,10 @@ def has_parallel(lines: np.ndarray, size: float, snap_angle_deg: float) -> np.nd
     d = lines[:, 2:] - lines[:, :2]
     length = np.linalg.norm(d, axis=1)
     theta = np.arctan2(d[:, 1], d[:, 0])
-    diff = np.abs((theta[:, None] - theta[None, :] + 0.5 * np.pi) % np.pi - 0.5 * np.pi)
-    family = (diff <= np.radians(max(snap_angle_deg, 1.0))) @ length  # includes the line itself
-    dominant = (family >= 2.0 * length) & (family >= _DOMINANT_SHARE * length.sum())
-    return dominant | (length >= _LONE_FRACTION * size)
+    diff = _undirected_angle(theta[:, None], theta[None, :])
+    family = (diff <= np.radians(max(config.snap_angle_deg, 1.0))) @ length  # includes the line itself
+    dominant = (family >= 2.0 * length) & (family >= config.dominant_share * length.sum())
+    return dominant | (length >= config.lone_fraction * size)
 
 
 def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
@@ -122,7 +119,7 @@ def snap_directions(lines: np.ndarray, max_angle_deg: float) -> np.ndarray:
     for seed in np.argsort(-length, kind="stable"):
         if not free[seed]:
             continue
-        diff = np.abs((theta - theta[seed] + 0.5 * np.pi) % np.pi - 0.5 * np.pi)  # undirected angle
+        diff = _undirected_angle(theta, theta[seed])
         members = np.flatnonzero(free & (diff <= np.radians(max_angle_deg)))
         free[members] = False
         # mean of undirected angles: average the doubled angles
@@ -142,7 +139,8 @@ def box_lines(
     outlines: list[np.ndarray],
     basis: np.ndarray,
     families: tuple[np.ndarray, np.ndarray],
-    min_fill: float = _MIN_FILL,
+    config: Lines3DConfig,
+    min_fill: float | None = None,
 ) -> np.ndarray:
     """Returns (4 B, 4) 2D sides of the rectangles round each of B (n, 2) in-plane point sets (a region's
     contours, outer and hole) whose sides follow the region's best supported in-plane family (plane axes
@@ -150,12 +148,14 @@ def box_lines(
 
     A small region (a window pane, a ledge strip) or hole (a window) spans a few raster cells only, too
     few for its contour's runs to give its sides; man-made outlines are often rectangles, and a side the
-    points do not follow is dropped by the edge refinement. Closed outlines filling less than min_fill of
-    their rectangle are no rectangles (a circle, a ragged shadow) and give none; 0 takes every point set.
+    points do not follow is dropped by the edge refinement. Closed outlines filling less than min_fill
+    (default: rectangle_min_fill) of their rectangle are no rectangles (a circle, a ragged shadow) and
+    give none; 0 takes every point set.
     """
+    min_fill = config.rectangle_min_fill if min_fill is None else min_fill
     dirs, support = families
     flat = dirs @ basis.T
-    in_plane = np.linalg.norm(flat, axis=1) >= np.cos(np.radians(_IN_PLANE_DEG))
+    in_plane = np.linalg.norm(flat, axis=1) >= np.cos(np.radians(config.family_in_plane_deg))
     if not outlines or not in_plane.any():
         return np.zeros((0, 4))
     best = np.flatnonzero(in_plane)[np.argmax(support[in_plane])]

@@ -31,9 +31,6 @@ __all__ = ["check_points", "extract", "lines_from_planes", "merge_collinear"]
 
 logger = logging.getLogger(__name__)
 
-_BESIDE_DEPTH_M = 0.3  # loose points this far off a region's plane can meet it at an edge
-_CELL_SPACINGS = 1.5  # automatic raster cell, in point spacings: fewer empty cells inside a region
-
 
 def extract(
     points: np.ndarray, config: Lines3DConfig | None = None, progress: Callable[[str], None] | None = None
@@ -63,7 +60,9 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
         return np.zeros((0, 6))
     # raster cells follow each region's own density (a scanner's falls with range)
     cells = (
-        np.full(len(planes.counts), config.cell_m) if config.cell_m > 0 else _CELL_SPACINGS * planes.spacing_m
+        np.full(len(planes.counts), config.cell_m)
+        if config.cell_m > 0
+        else config.cell_spacings * planes.spacing_m
     )
     cells = np.maximum(cells, 1e-3)
     order = np.argsort(planes.labels, kind="stable")
@@ -81,7 +80,7 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
     frames = [candidates(points[members[r]], reg, config) for r, reg in zip(kept, regions, strict=True)]
     # directions from every region's candidates: a window pane's short sides take the facade's
     raw = [to_world(f.lines, reg, f.basis) for f, reg in zip(frames, regions, strict=True)]
-    families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config.snap_angle_deg)
+    families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config)
     contours, near_m = [np.zeros((0, 6))], [np.zeros(0)]
     for frame, region in zip(frames, regions, strict=True):
         found = contour_segments(frame, region, families, loose_points, config)
@@ -158,36 +157,36 @@ def contour_segments(
     points of no large region, which bound the edges of the region's plane or continue it."""
     band = 2.0 * frame.cell
     size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
-    lines, fixed = snap_to_families(frame.lines, frame.basis, families, config.snap_angle_deg)
+    lines, fixed = snap_to_families(frame.lines, frame.basis, families, config)
     # the rectangles round the region's points and round its rectangular contours
     box = np.zeros((0, 4))
     if config.rectangles:
         box = np.concatenate(
             [
-                box_lines([frame.uv], frame.basis, families, 0.0),
-                box_lines(frame.outlines, frame.basis, families),
+                box_lines([frame.uv], frame.basis, families, config, min_fill=0.0),
+                box_lines(frame.outlines, frame.basis, families, config),
             ]
         )
     raw = np.concatenate([frame.lines, box])
     lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
-    near = _beside_points(loose, region, frame, band)
-    lines, kept = refine_edges(frame.uv, lines, band, near, fixed)
+    near = _beside_points(loose, region, frame, band, config.beside_depth_m)
+    lines, kept = refine_edges(frame.uv, lines, band, config, near, fixed)
     # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
-    kept[kept] = has_parallel(raw[kept], size, config.snap_angle_deg)
+    kept[kept] = has_parallel(raw[kept], size, config)
     return to_world(snap_directions(lines[kept], config.snap_angle_deg), region, frame.basis)
 
 
-def _beside_points(loose: cKDTree, region: Region, frame: Frame, band: float) -> np.ndarray:
-    """Returns (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within _BESIDE_DEPTH_M of
-    the region's plane and a band of its points' bounding box in it."""
+def _beside_points(loose: cKDTree, region: Region, frame: Frame, band: float, depth_m: float) -> np.ndarray:
+    """Returns (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within depth_m of the
+    region's plane and a band of its points' bounding box in it."""
     if loose.n == 0 or len(frame.uv) == 0:
         return np.zeros((0, 3))
     lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
     centre = region.centroid + 0.5 * (lo + hi) @ frame.basis
-    reach = float(np.sqrt(np.sum((0.5 * (hi - lo) + band) ** 2) + _BESIDE_DEPTH_M**2))
+    reach = float(np.sqrt(np.sum((0.5 * (hi - lo) + band) ** 2) + depth_m**2))
     rel = loose.data[loose.query_ball_point(centre, reach)] - region.centroid
     depth = rel @ region.normal
-    near = np.abs(depth) <= _BESIDE_DEPTH_M
+    near = np.abs(depth) <= depth_m
     uv = rel[near] @ frame.basis.T
     inside = ((uv >= lo - band) & (uv <= hi + band)).all(axis=1)
     return np.c_[uv[inside], depth[near][inside]]

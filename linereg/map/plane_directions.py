@@ -1,7 +1,7 @@
 """Map directions from planes: the dominant plane normals and their crease directions join the 3D clusters.
 
 Line segments of a real cloud (RGB-D, sparse LiDAR) are short and ragged: their directions are off by
-degrees, and a room's horizontal directions may have no cluster at all (home_kinect: only the vertical).
+degrees, and a room's horizontal directions may have no cluster at all (docs/measurements.md).
 The planes they come from are fitted to thousands of points each and are far more exact. A line lies in a
 plane, so every direction a structured scene's lines take is either where two dominant planes meet (a
 crease: ``n_a x n_b``) or, for a plane perpendicular to others, its normal (the floor's normal is the
@@ -22,7 +22,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..config import ParallelConfig
+from ..config import ParallelConfig, PlaneDirectionsConfig
 from ..directions import DirectionClusters
 from ..parallel import (
     as_segments,
@@ -34,35 +34,31 @@ from ..parallel import (
 
 logger = logging.getLogger(__name__)
 
-NORMAL_ANGLE_DEG = 3.0  # region normals this close are one plane direction (regions are fitted exactly)
-MIN_AREA_SHARE = 0.03  # a plane direction holds at least this share of the planar area
-MAX_PLANES = 6  # dominant plane directions considered (6: 15 creases)
-CREASE_MIN_ANGLE_DEG = 20.0  # planes meeting at a smaller angle give no reliable crease direction
-IN_PLANE_DEG = 3.0  # a direction this close to a plane's surface lies in it
-MAX_REGIONS = 2000  # only the largest regions vote for dominant normals
 
-
-def dominant_normals(normals: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def dominant_normals(
+    normals: np.ndarray, areas: np.ndarray, config: PlaneDirectionsConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((K, 3) unit normals, (K,) areas m^2) of the dominant plane orientations, largest first.
 
     normals: (R, 3) unit normals of planar regions; areas: (R,) their areas (m^2). Greedy: the normal whose
-    ``NORMAL_ANGLE_DEG`` neighbourhood holds the most area, refitted (area-weighted), its members removed.
+    ``normal_angle_deg`` neighbourhood holds the most area, refitted (area-weighted), its members removed.
     """
+    config = config or PlaneDirectionsConfig()
     normals, areas = np.asarray(normals, float).reshape(-1, 3), np.asarray(areas, float).reshape(-1)
-    if len(areas) > MAX_REGIONS:  # the largest regions hold the area; the (R, R) test below stays small
-        keep = np.argsort(-areas, kind="stable")[:MAX_REGIONS]
+    if len(areas) > config.max_regions:  # the largest regions hold the area; the (R, R) test stays small
+        keep = np.argsort(-areas, kind="stable")[: config.max_regions]
         normals, areas = normals[keep], areas[keep]
-    cos_thr = np.cos(np.radians(NORMAL_ANGLE_DEG))
+    cos_thr = np.cos(np.radians(config.normal_angle_deg))
     left = areas > 0
     total = float(areas[left].sum())
     found: list[np.ndarray] = []
     found_area: list[float] = []
     near = np.abs(normals @ normals.T) >= cos_thr  # (R, R): regions are few (hundreds to a few thousand)
-    while left.any() and len(found) < MAX_PLANES:
+    while left.any() and len(found) < config.max_planes:
         score = near[:, left] @ areas[left]
         best = int(np.argmax(np.where(left, score, -1.0)))
         members = left & near[best]
-        if areas[members].sum() < MIN_AREA_SHARE * total:
+        if areas[members].sum() < config.min_area_share * total:
             break
         found.append(principal_direction(normals[members], areas[members], largest=True))
         found_area.append(float(areas[members].sum()))
@@ -70,26 +66,29 @@ def dominant_normals(normals: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray
     return canonical_sign(np.array(found).reshape(-1, 3)), np.array(found_area)
 
 
-def plane_directions(normals: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def plane_directions(
+    normals: np.ndarray, areas: np.ndarray, config: PlaneDirectionsConfig | None = None
+) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((D, 3) unit line directions, (D,) plane support m) implied by dominant planes.
 
     Candidates are the dominant normals and the creases of every pair meeting at more than
-    ``CREASE_MIN_ANGLE_DEG``; near-duplicates (``NORMAL_ANGLE_DEG``) are one, and a candidate that lies
-    in no dominant plane (support 0) is dropped.
+    ``crease_min_angle_deg``; near-duplicates (``normal_angle_deg``) are one, and a candidate that lies
+    within ``in_plane_deg`` of no dominant plane (support 0) is dropped.
     """
-    n, a = dominant_normals(normals, areas)
+    config = config or PlaneDirectionsConfig()
+    n, a = dominant_normals(normals, areas, config)
     if len(n) < 2:
         return np.zeros((0, 3)), np.zeros(0)
     i, j = np.triu_indices(len(n), 1)
     cross = np.cross(n[i], n[j])
     sine = np.linalg.norm(cross, axis=1)
-    creases = cross[sine > np.sin(np.radians(CREASE_MIN_ANGLE_DEG))]
+    creases = cross[sine > np.sin(np.radians(config.crease_min_angle_deg))]
     creases /= np.linalg.norm(creases, axis=1, keepdims=True)
     candidates = np.concatenate([n, creases])
-    in_plane = np.abs(candidates @ n.T) <= np.sin(np.radians(IN_PLANE_DEG))  # (C, K)
+    in_plane = np.abs(candidates @ n.T) <= np.sin(np.radians(config.in_plane_deg))  # (C, K)
     support = in_plane @ (2.0 * np.sqrt(a))
     kept: list[int] = []
-    cos_same = np.cos(np.radians(NORMAL_ANGLE_DEG))
+    cos_same = np.cos(np.radians(config.normal_angle_deg))
     for c in np.argsort(-support, kind="stable"):
         if support[c] > 0 and not any(abs(candidates[c] @ candidates[k]) >= cos_same for k in kept):
             kept.append(int(c))
@@ -97,7 +96,11 @@ def plane_directions(normals: np.ndarray, areas: np.ndarray) -> tuple[np.ndarray
 
 
 def map_clusters(
-    lines3d: np.ndarray, normals: np.ndarray, areas: np.ndarray, config: ParallelConfig | None = None
+    lines3d: np.ndarray,
+    normals: np.ndarray,
+    areas: np.ndarray,
+    config: ParallelConfig | None = None,
+    planes: PlaneDirectionsConfig | None = None,
 ) -> DirectionClusters:
     """Returns the 3D direction clusters of (M, 6) segments with the directions of their planes added.
 
@@ -105,12 +108,13 @@ def map_clusters(
     ``parallel_clusters`` (all of them, not only ``top_k``); a plane direction within ``merge_angle_deg``
     of one is that cluster, the others are added as directions of their own. Segments are labelled with
     the direction they are most parallel to within their tolerance; ``support`` is the members' length
-    plus the plane support; at most ``config.top_k`` directions, strongest first.
+    plus the plane support; at most ``config.top_k`` directions, strongest first. ``planes`` configures
+    ``plane_directions``.
     """
     config = config or ParallelConfig()
     lines3d = as_segments(lines3d, "lines3d", 6)
     seg = parallel_clusters(lines3d, _all_clusters(config))
-    extra, extra_support = plane_directions(normals, areas)
+    extra, extra_support = plane_directions(normals, areas, planes)
     cos_merge = np.cos(np.radians(config.merge_angle_deg))
     plane_support = np.zeros(len(seg))
     added: list[np.ndarray] = []

@@ -161,7 +161,7 @@ def _region_spacing(
         if k < 1:
             return 0.0
         sample = member[:: max(1, len(member) // 500)]
-        # sliding-midpoint trees build about twice as fast; the neighbours found are the same
+        # sliding-midpoint trees build faster; the neighbours found are the same
         tree = cKDTree(member, balanced_tree=False, compact_nodes=False)
         dist, _ = tree.query(sample, k=k + 1)  # the first neighbour is the point itself
         return float(np.median(dist[:, -1])) * np.sqrt(np.pi / k)

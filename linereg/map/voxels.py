@@ -1,7 +1,8 @@
 """Voxel grids of a point cloud: occupied voxels, their neighbours and per-group plane fits (numpy only).
 
-A voxel is found by binary search in the sorted linear indices of the occupied voxels: a scan fills a
-tiny share of its bounding box (1 M points, 0.1 m voxels: 0.5 M of 136 M cells), too few for a dense table.
+A voxel is found in a dense table of the grid's cells when the grid is small enough (``MAX_TABLE_CELLS``),
+else by binary search in the sorted linear indices of the occupied voxels: a scan fills a tiny share of its
+bounding box (docs/measurements.md), and a table of a large box would be mostly empty.
 """
 
 from __future__ import annotations
@@ -15,9 +16,9 @@ import numpy as np
 FORWARD = np.array([o for o in itertools.product((-1, 0, 1), repeat=3) if o > (0, 0, 0)], dtype=np.int64)
 # the voxel itself and its 26 neighbours
 AROUND = np.array(list(itertools.product((-1, 0, 1), repeat=3)), dtype=np.int64)
-# a grid up to this size (128 MB of int32) is tabulated: finding a voxel in a table is 5x faster than a
-# binary search, and the occupied cells come without sorting the points
-_MAX_TABLE_CELLS = 2**25
+# the largest grid (cells) tabulated, 128 MB of int32: a table finds a voxel faster than a binary search
+# and gives the occupied cells without sorting the points; both give the same voxels (speed only)
+MAX_TABLE_CELLS = 2**25
 
 
 @dataclass(frozen=True)
@@ -52,7 +53,7 @@ def build_voxels(points: np.ndarray, voxel_m: float) -> Voxels:
     for c, low, stride in zip(cols, lo, strides, strict=True):
         cell += (np.floor(c / voxel_m).astype(np.int64) - (low - 1)) * stride
     lookup = None
-    if int(dims.prod()) <= _MAX_TABLE_CELLS:
+    if int(dims.prod()) <= MAX_TABLE_CELLS:
         # a table of every cell: the occupied ones in order without sorting the points
         lookup = np.full(int(dims.prod()), -1, dtype=np.int32)
         lookup[cell] = 0
@@ -171,7 +172,7 @@ def plane_fits(m: Moments, closed_form: bool = False) -> tuple[np.ndarray, np.nd
     """Returns (normals (G, 3), curvature (G,)) of moments: the covariance's smallest eigenvector and the
     surface variation lambda_0 / (lambda_0 + lambda_1 + lambda_2) (0 on a perfect plane); zero normal and
     curvature inf where not fitted. ``closed_form`` solves the 3 x 3 eigenproblems in closed form (several
-    times faster for many groups, same normals to ~1e-10 rad, but of arbitrary sign)."""
+    times faster for many groups, the same normals up to rounding, but of arbitrary sign)."""
     normals = np.zeros((len(m.counts), 3))
     curvature = np.full(len(m.counts), np.inf)
     cov = m.covariance
@@ -230,7 +231,7 @@ def plane_distances(
     """Returns (N,) float64 distances of points[index] ((P, 3), (N,) int64) to planes ``plane`` (N,) int64
     through (R, 3) centroids with (R, 3) unit normals: |(x - c) . n|."""
     out = np.zeros(len(index))
-    for i in range(3):  # per coordinate: 1-D gathers are about twice as fast as (N, 3) ones
+    for i in range(3):  # per coordinate: 1-D gathers are faster than (N, 3) ones
         out += (points[:, i][index] - centroids[:, i][plane]) * normals[:, i][plane]
     return np.abs(out, out=out)
 

@@ -17,9 +17,9 @@ import numpy as np
 
 logger = logging.getLogger(__name__)
 
-FACE_KINDS = ("wall", "window", "door", "roof", "ground", "ledge")
-EDGE_KINDS = ("corner", "roof", "ground", "ledge", "window", "door")
-_Z = np.array([0.0, 0.0, 1.0])
+FACE_KINDS = ("wall", "window", "door", "roof", "ground", "ledge")  # the materials a face can be
+EDGE_KINDS = ("corner", "roof", "ground", "ledge", "window", "door")  # what an edge bounds
+UP = np.array([0.0, 0.0, 1.0])  # the world's vertical (z up, ground at z = 0)
 Range = tuple[float, float]
 
 
@@ -231,7 +231,7 @@ def _ledges(
         s0, s1 = (-e, length + e) if extend else (0.0, length)
         for t, up in ((z + half, 1.0), (z - half, -1.0)):
             quad = frame.lift([s0, s1, s1, s0], t, [0.0, 0.0, e, e])[None]
-            parts.face(_orient(quad, up * _Z), "ledge", b)
+            parts.face(_orient(quad, up * UP), "ledge", b)
 
 
 def _block(parts: _Parts, rng, cfg: BuildingConfig, footprint: np.ndarray, b: int) -> float:
@@ -249,7 +249,7 @@ def _block(parts: _Parts, rng, cfg: BuildingConfig, footprint: np.ndarray, b: in
     for frame, length, extend in block_facades(footprint):
         _facade(parts, rng, cfg, style, frame, length, b)
         _ledges(parts, cfg, frame, length, np.arange(1, style.floors) * style.floor_h, extend, b)
-    roof = _Frame(np.array([x0, y0, height]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), _Z)
+    roof = _Frame(np.array([x0, y0, height]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), UP)
     parts.face(_rect_quads(roof, np.array([[0.0, 0.0, x1 - x0, y1 - y0]])), "roof", b)
     return height
 
@@ -265,7 +265,7 @@ def block_facades(footprint: np.ndarray) -> list[tuple[_Frame, float, bool]]:
         ((0.0, -1.0, 0.0), (x0, y0), x1 - x0),
     ):
         n = np.array(normal)
-        out.append((_Frame(np.array([*corner, 0.0]), np.cross(_Z, n), _Z, n), float(length), bool(n[0] != 0)))
+        out.append((_Frame(np.array([*corner, 0.0]), np.cross(UP, n), UP, n), float(length), bool(n[0] != 0)))
     return out
 
 
@@ -301,7 +301,7 @@ def make_building(rng: np.random.Generator, config: BuildingConfig | None = None
     parts, footprints = _Parts(), _layout(rng, cfg)
     heights = [_block(parts, rng, cfg, fp, b) for b, fp in enumerate(footprints)]
     lo, hi = footprints[:, :2].min(0) - cfg.ground_margin_m, footprints[:, 2:].max(0) + cfg.ground_margin_m
-    ground = _Frame(np.array([*lo, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), _Z)
+    ground = _Frame(np.array([*lo, 0.0]), np.array([1.0, 0, 0]), np.array([0, 1.0, 0]), UP)
     holes = footprints - np.r_[lo, lo]
     parts.face(
         _rect_quads(ground, rect_minus(float(hi[0] - lo[0]), float(hi[1] - lo[1]), holes)), "ground", -1

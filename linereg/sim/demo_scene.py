@@ -20,10 +20,10 @@ from .views import aim, is_free, street_camera, street_view
 
 log = logging.getLogger(__name__)
 
-SCANNER_HEIGHT_M = 1.7
-# ~1 M points in a few seconds: 0.15 degree rays (~3.5 cm apart on a facade 13 m away; a coarser step
-# loses 10-15 cm window recesses and 25 cm ledges) from 5 positions, thinned where densest (``scan.thin``);
-# rays steeper than 30 degrees down would only add the ground right round each tripod
+SCANNER_HEIGHT_M = 1.7  # the demo scanners' optical centre above the ground (a tripod)
+# ~1 M points: 0.15 degree rays (~3.5 cm apart on a facade 13 m away; a coarser step loses 10-15 cm window
+# recesses and 25 cm ledges) from 5 positions, thinned where densest (``scan.thin``); rays steeper than
+# 30 degrees down would only add the ground right round each tripod
 DEMO_SCAN = ScanConfig(angular_step_deg=0.15, min_elevation_deg=-30.0, target_points=1_000_000)
 
 
@@ -112,7 +112,7 @@ def demo_poses(
 
     Each must show at least ``min_visible_edges`` edges of 20 px or more and some structure that fixes
     where along the building it stands (``_distinctive``), not just a patch of wall with a window grid,
-    which is the same on every facade. Visibility comes from a half-resolution z-buffer (~0.1 s a view).
+    which is the same on every facade. Visibility comes from a half-resolution z-buffer (cheap per view).
     """
     small = scaled_camera(camera, 0.5)
     poses: list[np.ndarray] = []

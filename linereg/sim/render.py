@@ -16,11 +16,10 @@ import numpy as np
 
 from ..camera import Camera
 from ..geometry import invert
-from .building import Building
+from .building import FACE_KINDS, Building
 
-_KINDS = ("wall", "window", "door", "roof", "ground", "ledge")
-# linear RGB-ish albedos in BGR order (0..1); walls get a per-block tint on top
-_ALBEDO = {
+# albedo of each face kind, BGR display values in [0, 1]; walls get a per-block tint on top
+ALBEDO_BGR = {
     "wall": (0.62, 0.70, 0.78),
     "window": (0.16, 0.13, 0.11),
     "door": (0.12, 0.20, 0.32),
@@ -28,10 +27,11 @@ _ALBEDO = {
     "ground": (0.36, 0.37, 0.38),
     "ledge": (0.80, 0.84, 0.86),
 }
-_TEXTURE_AMPLITUDE = {"wall": 0.07, "window": 0.25, "door": 0.10, "roof": 0.1, "ground": 0.08, "ledge": 0.04}
-_SKY_ZENITH = np.array([0.78, 0.50, 0.30])  # BGR
-_SKY_HORIZON = np.array([0.95, 0.88, 0.80])
-_FAR_GROUND = np.array([0.40, 0.45, 0.42])
+# texture (plaster, reflections, asphalt) varies each face kind's brightness by about this share (std)
+TEXTURE_AMPLITUDE = {"wall": 0.07, "window": 0.25, "door": 0.10, "roof": 0.1, "ground": 0.08, "ledge": 0.04}
+SKY_ZENITH_BGR = np.array([0.78, 0.50, 0.30])  # the sky straight up
+SKY_HORIZON_BGR = np.array([0.95, 0.88, 0.80])  # the sky at the horizon (and what glass mirrors)
+FAR_GROUND_BGR = np.array([0.40, 0.45, 0.42])  # what lies below the horizon beyond the ground plane
 
 
 @dataclass(frozen=True)
@@ -170,9 +170,9 @@ def _pixel_rays(camera: Camera) -> np.ndarray:
 
 def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator, cfg: RenderConfig):
     """Returns (F, 3) float32 BGR in [0, 1] of every face: albedo x Lambert shading, glass mirroring sky."""
-    kinds_sorted = sorted(_KINDS)
+    kinds_sorted = sorted(FACE_KINDS)
     kind = np.searchsorted(np.array(kinds_sorted), building.face_kind)
-    albedo = np.array([_ALBEDO[k] for k in kinds_sorted])[kind]
+    albedo = np.array([ALBEDO_BGR[k] for k in kinds_sorted])[kind]
     # every block its own plaster tint, every window pane and door a slightly different albedo
     num_blocks = int(building.face_block.max()) + 2
     tint = rng.uniform(0.75, 1.15, size=(num_blocks, 3)) * rng.uniform(0.8, 1.1, size=(num_blocks, 1))
@@ -202,7 +202,7 @@ def _face_colours(building: Building, eye: np.ndarray, rng: np.random.Generator,
     cos_view = np.abs(np.einsum("pk,pk->p", view, n[glass])) / np.linalg.norm(view, axis=1)
     mirror = 0.3 + 0.7 * (1.0 - cos_view) ** 5
     mirror *= rng.uniform(0.5, 1.0, size=len(mirror))
-    colour[glass] = (1 - mirror[:, None]) * colour[glass] + mirror[:, None] * 0.7 * _SKY_HORIZON
+    colour[glass] = (1 - mirror[:, None]) * colour[glass] + mirror[:, None] * 0.7 * SKY_HORIZON_BGR
     return np.clip(colour, 0.0, 1.0).astype(np.float32)
 
 
@@ -211,8 +211,8 @@ def _sky_image(camera: Camera, world_from_cam: np.ndarray) -> np.ndarray:
     dirs = rotate(_pixel_rays(camera), world_from_cam[:3, :3])
     elevation = dirs[:, :, 2] / np.linalg.norm(dirs, axis=2)
     e = np.clip(elevation, 0.0, 1.0)[..., None] ** 0.6
-    colour = (1.0 - e) * _SKY_HORIZON + e * _SKY_ZENITH
-    return np.where((elevation < 0.0)[..., None], _FAR_GROUND, colour).astype(np.float32)
+    colour = (1.0 - e) * SKY_HORIZON_BGR + e * SKY_ZENITH_BGR
+    return np.where((elevation < 0.0)[..., None], FAR_GROUND_BGR, colour).astype(np.float32)
 
 
 def _texture(building, camera, world_from_cam, face_id, inv_depth, rng) -> np.ndarray:
@@ -227,8 +227,8 @@ def _texture(building, camera, world_from_cam, face_id, inv_depth, rng) -> np.nd
     flat = np.abs(building.normals[:, 2]) > 0.5
     tex_u = np.where(flat[ids], points[:, :, 0], points[:, :, 0] + points[:, :, 1])
     tex_v = np.where(flat[ids], points[:, :, 1], points[:, :, 2])
-    kinds = sorted(_KINDS)
-    amplitude = np.array([_TEXTURE_AMPLITUDE[k] for k in kinds], dtype=np.float32)
+    kinds = sorted(FACE_KINDS)
+    amplitude = np.array([TEXTURE_AMPLITUDE[k] for k in kinds], dtype=np.float32)
     amp = amplitude[np.searchsorted(np.array(kinds), building.face_kind)][ids]
     amp[face_id < 0] = 0.0
     noise = 0.5 * _value_noise(rng, tex_u / 0.06, tex_v / 0.06) + _value_noise(rng, tex_u / 0.8, tex_v / 0.8)

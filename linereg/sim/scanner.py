@@ -22,8 +22,9 @@ from .render import rasterize, rotate
 
 log = logging.getLogger(__name__)
 
-# rows: camera x, y, z axes in world coordinates for the six cube views (+x, -x, +y, -y, +z, -z forward)
-_CUBE = np.array(
+# the six 90-degree views of a cube round a scanner (+x, -x, +y, -y, +z, -z forward); rows: the view's
+# camera x, y, z axes in world coordinates
+CUBE_VIEWS = np.array(
     [
         [[0, -1, 0], [0, 0, -1], [1, 0, 0]],
         [[0, 1, 0], [0, 0, -1], [-1, 0, 0]],
@@ -120,12 +121,12 @@ def scan_one(
     tables = _face_tables(building, position)
     points = []
     for k in np.unique(side):
-        view_from_world = make_cam_from_world(_CUBE[k], -_CUBE[k] @ position)
+        view_from_world = make_cam_from_world(CUBE_VIEWS[k], -CUBE_VIEWS[k] @ position)
         face_id, _ = rasterize(building, view_from_world, cube, near_m=1e-3)
         for chunk in np.array_split(
             np.flatnonzero(side == k), max(1, int(np.sum(side == k)) // cfg.chunk_rays)
         ):
-            rng_m = _nearest_hits(tables, dirs[chunk], face_id, cube, _CUBE[k])
+            rng_m = _nearest_hits(tables, dirs[chunk], face_id, cube, CUBE_VIEWS[k])
             ok = (rng_m >= cfg.min_range_m) & (rng_m <= cfg.max_range_m)
             r = rng_m[ok] + rng.normal(0.0, cfg.range_noise_m, size=int(ok.sum()))
             points.append(position + r[:, None] * dirs[chunk][ok])

@@ -2,10 +2,8 @@
 
 - ``paper_scene``: the paper's Monte-Carlo generator (section IV-A): random parallel 3D lines in
   ``[-1, 1]^3``, projected into a 640x480, f = 800 camera with noise, 3D and 2D outliers.
-- ``building_scene``: edges of a procedural Manhattan building (``linereg.sim.building``) seen from the street,
-  with occlusion, fragmentation, partial segments and clutter.
-
-``linereg.sim.building`` imports this module, so this one imports it only inside ``building_scene``.
+- the helpers both it and ``building_scene.building_scene`` (edges of a procedural Manhattan building seen
+  from the street, with occlusion, fragmentation, partial segments and clutter) build on.
 """
 
 from __future__ import annotations
@@ -20,7 +18,7 @@ from ..geometry import make_cam_from_world, segment_lengths
 from ..matching import project_segments
 
 MIN_LENGTH_PX = 20.0  # shorter projections are dropped: LSD would not report them reliably either
-_MIN_DEPTH_M = 1e-3
+MIN_DEPTH_M = 1e-3  # segments are cut where they come nearer to the camera plane than this
 
 
 @dataclass(frozen=True)
@@ -103,7 +101,7 @@ def project_visible(
 
     Segments are cut at the near plane, clipped to the image, and dropped below ``min_length_px``.
     """
-    seg, visible = project_segments(lines3d, camera, cam_from_world, _MIN_DEPTH_M)
+    seg, visible = project_segments(lines3d, camera, cam_from_world, MIN_DEPTH_M)
     seg, inside = clip_to_image(seg, camera)
     keep = visible & inside & (segment_lengths(seg) >= min_length_px)
     return seg[keep], np.flatnonzero(keep)

@@ -216,9 +216,9 @@ def camera_poses(
 def _sees_enough(building: Building, camera: Camera, cam_from_world: np.ndarray, min_edges: int) -> bool:
     """Returns whether the view shows at least min_edges edges of MIN_LENGTH_PX or more (occlusion handled).
 
-    A half-resolution z-buffer count (~0.1 s) decides when it is far from the threshold (below half of
-    it or above 1.5 times it); only views near the threshold pay for the exact ray-cast count of
-    ``project_building`` (~0.9 s), so the choice of views is the same as with ray casting alone.
+    A half-resolution z-buffer count decides when it is far from the threshold (below half of it or
+    above 1.5 times it); only views near the threshold pay for the exact, several times slower ray-cast
+    count of ``project_building``, so the choice of views is the same as with ray casting alone.
     """
     from .render import rasterize, scaled_camera, visible_edge_lengths  # render imports this module
 
