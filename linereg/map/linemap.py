@@ -49,7 +49,8 @@ class LineMap:
         self.tile_m = float(grid["tile_m"])
         index = index if index is not None else _tile_index(segments, grid)
         self._keys, self._ptr, self._members = index
-        self._cells = np.stack([self._keys // _SPAN, self._keys % _SPAN], axis=1) - _SPAN // 2  # (T, 2) i, j
+        # (T, 2) i, j of each tile
+        self._cells = np.stack(np.divmod(self._keys, TILE_KEY_SPAN), axis=1) - TILE_KEY_SPAN // 2
 
     # ------------------------------------------------------------------------------------ construction
 
@@ -259,11 +260,11 @@ def _grid(segments: np.ndarray, tile_m: float | None) -> dict[str, Any]:
     return {"axes": axes.tolist(), "origin": bounds[0][axes].tolist(), "tile_m": float(tile_m)}
 
 
-_SPAN = 1 << 31  # tile (i, j) -> one int64 id, i, j within +-2**30
+TILE_KEY_SPAN = 1 << 31  # tile (i, j) -> one int64 id (i + span/2) * span + j + span/2, |i|, |j| < 2**30
 
 
 def _flat(cells: np.ndarray) -> np.ndarray:
-    return (cells[:, 0] + _SPAN // 2) * _SPAN + (cells[:, 1] + _SPAN // 2)
+    return (cells[:, 0] + TILE_KEY_SPAN // 2) * TILE_KEY_SPAN + (cells[:, 1] + TILE_KEY_SPAN // 2)
 
 
 def _tile_index(segments: np.ndarray, grid: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
