@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import math
 import os
 import tempfile
 import warnings
@@ -71,10 +72,14 @@ def read_cloud(path: str | os.PathLike) -> np.ndarray:
 def _check_readable(path: Path) -> None:
     if not path.exists():
         raise FileFormatError(f"{path}: no such file")
+    if path.is_dir():
+        raise FileFormatError(f"{path}: is a directory, not a file")
     if not path.is_file():
         raise FileFormatError(f"{path}: not a file")
     if not os.access(path, os.R_OK):
         raise FileFormatError(f"{path}: not readable (permission denied)")
+    if path.stat().st_size == 0:
+        raise FileFormatError(f"{path}: empty file")
 
 
 def _read_open3d(path: Path) -> np.ndarray:
@@ -214,6 +219,22 @@ def read_cameras(path: str | os.PathLike) -> dict[str, Camera] | Camera:
     return next(iter(cameras.values())) if len(cameras) == 1 else cameras
 
 
+def camera_for_image(
+    cameras: dict[str, Camera] | Camera, image: str | os.PathLike, source: str | os.PathLike = "cameras"
+) -> Camera:
+    """Returns the camera of one image: the shared one, else the entry keyed by its path, name or stem.
+
+    cameras: what ``read_cameras`` returned for the file ``source`` (named in the error if none fits).
+    """
+    if isinstance(cameras, Camera):
+        return cameras
+    image = Path(image)
+    for key in (str(image), image.name, image.stem):
+        if key in cameras:
+            return cameras[key]
+    raise InvalidInputError(f"{source}: no camera for image {image.name}")
+
+
 def _read_text_file(path: Path) -> str:
     try:
         return path.read_text(encoding="utf-8")
@@ -287,12 +308,16 @@ def _cameras_from_colmap(text: str, path: Path) -> dict[str, Camera]:
 
 
 def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
-    """Writes ``data`` to ``path`` atomically: a temporary file in the same directory, then os.replace."""
+    """Writes ``data`` to ``path`` atomically: a temporary file in the same directory, then os.replace.
+
+    The file gets the permissions of any newly created file (0666 less the umask; mkstemp's are 0600).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as f:
+            os.chmod(tmp, 0o666 & ~_umask())
             f.write(data)
             f.flush()
             os.fsync(f.fileno())
@@ -300,6 +325,20 @@ def write_bytes_atomic(path: str | os.PathLike, data: bytes) -> None:
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
+
+
+def _umask() -> int:
+    """Returns the process's umask: from /proc where it can be read, else by setting and restoring it."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)  # the only portable read; not thread-safe, hence /proc first
+    os.umask(mask)
+    return mask
 
 
 def read_config(path: str | os.PathLike):
@@ -324,42 +363,57 @@ def read_json(path: str | os.PathLike) -> Any:
 
 
 def write_json_atomic(path: str | os.PathLike, obj: Any) -> None:
-    """Writes ``obj`` as indented JSON (numpy arrays and scalars become lists and numbers), atomically."""
-    text = json.dumps(obj, indent=2, default=_json_default, allow_nan=True)
+    """Writes ``obj`` as indented JSON, atomically: numpy arrays and scalars become lists and numbers,
+    paths strings, NaN and inf ``null`` (strict JSON: no ``NaN`` token other readers reject)."""
+    text = json.dumps(jsonable(obj), indent=2, allow_nan=False)
     write_bytes_atomic(path, (text + "\n").encode("utf-8"))
 
 
-def _json_default(value: Any) -> Any:
-    if isinstance(value, np.ndarray):
-        return value.tolist()
-    if isinstance(value, np.generic):
-        return value.item()
-    if isinstance(value, Path):
-        return str(value)
-    raise TypeError(f"cannot write {type(value).__name__} as JSON")
+def jsonable(obj: Any) -> Any:
+    """Returns ``obj`` with arrays, numpy scalars and paths as plain Python values and NaN/inf as None.
+
+    Anything else that JSON cannot hold raises TypeError.
+    """
+    if isinstance(obj, dict):
+        return {str(k): jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, list | tuple):
+        return [jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        obj = obj.item()
+    if isinstance(obj, Path):
+        return str(obj)
+    if isinstance(obj, float):
+        return obj if math.isfinite(obj) else None
+    if obj is None or isinstance(obj, str | int | bool):
+        return obj
+    raise TypeError(f"cannot write {type(obj).__name__} as JSON")
 
 
-def write_tum(
-    path: str | os.PathLike, stamps_or_names: Sequence[float | str], cam_from_world_list: Iterable
-) -> None:
+def write_tum(path: str | os.PathLike, timestamps: Sequence[float], cam_from_world_list: Iterable) -> None:
     """Writes a TUM trajectory: one line ``timestamp tx ty tz qx qy qz qw`` per frame, atomically.
 
     TUM stores the camera pose in the world, world_from_cam: t is the camera centre, q its rotation
-    (Hamilton, scalar last). cam_from_world_list: (4, 4) float64 matrices, one per stamp.
+    (Hamilton, scalar last). timestamps: seconds, one finite number per pose; cam_from_world_list: (4, 4)
+    float64 matrices. Lines are written in time order, as TUM tools (evo) expect.
     """
     from scipy.spatial.transform import Rotation
 
     from .geometry import invert
 
     poses = [np.asarray(m, dtype=np.float64) for m in cam_from_world_list]
-    if len(poses) != len(stamps_or_names):
-        raise InvalidInputError(f"write_tum: {len(stamps_or_names)} stamps but {len(poses)} poses")
-    lines = ["# timestamp tx ty tz qx qy qz qw (world_from_cam)"]
-    for stamp, cam_from_world in zip(stamps_or_names, poses, strict=True):
+    if len(poses) != len(timestamps):
+        raise InvalidInputError(f"write_tum: {len(timestamps)} timestamps but {len(poses)} poses")
+    for stamp, cam_from_world in zip(timestamps, poses, strict=True):
+        if not isinstance(stamp, int | float | np.number) or not math.isfinite(stamp):
+            raise InvalidInputError(f"write_tum: a timestamp must be a finite number, got {stamp!r}")
         if cam_from_world.shape != (4, 4):
             raise InvalidInputError(f"write_tum: a pose must be (4, 4), got {cam_from_world.shape}")
+    lines = []
+    for stamp, cam_from_world in sorted(zip(timestamps, poses, strict=True), key=lambda pair: pair[0]):
         world_from_cam = invert(cam_from_world)
-        q = Rotation.from_matrix(world_from_cam[:3, :3]).as_quat()  # scipy: (x, y, z, w)
-        label = stamp if isinstance(stamp, str) else f"{float(stamp):.9f}"
-        lines.append(" ".join([label, *(f"{v:.9f}" for v in (*world_from_cam[:3, 3], *q))]))
-    write_bytes_atomic(path, ("\n".join(lines) + "\n").encode("utf-8"))
+        q = Rotation.from_matrix(world_from_cam[:3, :3]).as_quat()  # scipy: (x, y, z, w), TUM's order
+        lines.append(" ".join(f"{v:.9f}" for v in (float(stamp), *world_from_cam[:3, 3], *q)))
+    header = "# timestamp tx ty tz qx qy qz qw (world_from_cam)"
+    write_bytes_atomic(path, "\n".join([header, *lines, ""]).encode("utf-8"))

@@ -82,10 +82,27 @@ class Client:
         """Returns the map queried: the one given, or the only one alive."""
         if self._map_name is None:
             maps = sorted({m for m, _ in self.instances()})
-            if len(maps) != 1:
-                raise ServiceError("not_found", f"expected one map being served, found {maps or 'none'}")
+            if not maps:
+                raise ServiceError("not_found", "no service for any map (no live linereg instance)")
+            if len(maps) > 1:
+                raise ServiceError(
+                    "not_found", f"several maps are served ({', '.join(maps)}); choose one (--map)"
+                )
             self._map_name = maps[0]
         return self._map_name
+
+    def check_served(self, timeout: float = 1.0) -> list[str]:
+        """Returns the instances serving ``map_name`` (liveliness tokens, answered at once by the router).
+
+        ServiceError("not_found") when there is none: a query would only wait for its timeout.
+        """
+        name = self.map_name
+        found = [instance for _, instance in self.instances(name, timeout)]
+        if not found:
+            served = sorted({m for m, _ in self.instances("*", timeout)})
+            others = f"; served: {', '.join(served)}" if served else ""
+            raise ServiceError("not_found", f"no service for map {name!r}{others}")
+        return found
 
     def instances(self, map_name: str = "*", timeout: float = 2.0) -> list[tuple[str, str]]:
         """Returns the (map, instance) pairs whose liveliness tokens are alive."""

@@ -1,7 +1,9 @@
 """The ``linereg`` CLI end to end on a small demo scene, and its answers to bad input (issue 3)."""
 
 import json
-import math
+import os
+import stat
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -9,6 +11,7 @@ import pytest
 
 from linereg.cli import main
 from linereg.geometry import camera_center, pose_errors
+from linereg.map.linemap import LineMap
 
 NUM_IMAGES = 2
 
@@ -60,42 +63,72 @@ def files(scene, tmp_path_factory):
 def test_map_build_and_info(files, capsys):
     folder, _ = files
     assert (folder / "demo.npz").is_file() and not leftovers(folder)
-    code, out, err = run(capsys, "map", "info", folder / "demo.npz")
+    line_map = LineMap.load(folder / "demo.npz")
+    assert line_map.metadata["name"] == "cloud" and len(line_map) > 100  # named after the cloud file
+    code, out, err = run(capsys, "map", "info", "--json", folder / "demo.npz")
+    assert code == 0, err
+    summary = json.loads(out)
+    assert summary["name"] == "cloud" and summary["num_segments"] == len(line_map)
+    assert len(summary["clusters"]) == len(line_map.clusters) >= 3  # a building: at least 3 directions
+    assert sum(c["size"] for c in summary["clusters"]) + summary["unclustered"] == len(line_map)
+    lo, hi = np.array(summary["bounds"])
+    assert (lo <= line_map.segments.reshape(-1, 3).min(axis=0) + 1e-9).all()
+    assert (hi >= line_map.segments.reshape(-1, 3).max(axis=0) - 1e-9).all()
+    code, out, _ = run(capsys, "map", "info", folder / "demo.npz")
     assert code == 0
-    assert "segments" in (out + err).lower()
+    assert out.startswith(f"map 'cloud' ({folder / 'demo.npz'})")
+    assert f"segments: {len(line_map)} (total" in out and f"clusters: {len(line_map.clusters)} (" in out
 
 
 def test_localize_writes_json_tum_and_overlays(scene, files, capsys, tmp_path):
+    from evo.tools import file_interface
+
     folder, images = files
+    # TUM-style names (the capture time): the TUM file's timestamps
+    stamps = [1305031102.175304, 1305031102.211214]
+    named = [tmp_path / f"{stamp:.6f}.png" for stamp in stamps]
+    for src, dst in zip(images, named, strict=True):
+        dst.write_bytes(src.read_bytes())
     out, tum, overlay = tmp_path / "poses.json", tmp_path / "traj.tum", tmp_path / "overlay"
     code, _, err = run(
-        capsys, "localize", "--map", folder / "demo.npz", "--camera", folder / "camera.json", *images,
+        capsys, "localize", "--map", folder / "demo.npz", "--camera", folder / "camera.json", *named,
         "--out", out, "--tum", tum, "--overlay", overlay,
     )  # fmt: skip
     assert code == 0, err
+    assert f"localized {NUM_IMAGES}/{NUM_IMAGES} images" in err
     poses = json.loads(out.read_text())
-    assert len(poses) == NUM_IMAGES
-    ok = []
-    for path, truth in zip(images, scene.cam_from_world, strict=True):
+    assert sorted(poses) == sorted(map(str, named))
+    for path, stamp, truth in zip(named, stamps, scene.cam_from_world, strict=True):
         record = poses[str(path)]
         assert {"success", "reason", "cam_from_world", "num_inliers", "covariance", "timings"} <= set(record)
-        if record["success"]:
-            rot, pos, _ = pose_errors(np.array(record["cam_from_world"]), truth)
-            assert rot < 2.0 and pos < 0.5, (path.name, rot, pos)
-            assert record["num_inliers"] >= 6 and "total" in record["timings"]
-            ok.append((path, np.array(record["cam_from_world"])))
-    assert ok, f"no image localized: {[r['reason'] for r in poses.values()]}"
-    lines = [line.split() for line in tum.read_text().splitlines() if line and not line.startswith("#")]
-    assert len(lines) == len(ok)
-    for fields, (_path, cam_from_world) in zip(lines, ok, strict=True):
-        assert len(fields) == 8
-        position, quat = np.array(fields[1:4], float), np.array(fields[4:8], float)
-        assert np.allclose(position, camera_center(cam_from_world), atol=1e-5)
-        assert math.isclose(np.linalg.norm(quat), 1.0, abs_tol=1e-5)
-    for path in images:
+        assert record["success"], record["reason"]
+        assert record["timestamp"] == stamp
+        rot, pos, _ = pose_errors(np.array(record["cam_from_world"]), truth)
+        assert rot < 2.0 and pos < 0.5, (path.name, rot, pos)
+        assert record["num_inliers"] >= 6 and record["timings"]["total"] > 0
+    # the TUM file as evo reads it: times, and positions = the camera centres (world_from_cam)
+    trajectory = file_interface.read_tum_trajectory_file(str(tum))
+    np.testing.assert_allclose(trajectory.timestamps, stamps, rtol=0, atol=1e-6)
+    for position, path, truth in zip(trajectory.positions_xyz, named, scene.cam_from_world, strict=True):
+        cam_from_world = np.array(poses[str(path)]["cam_from_world"])
+        np.testing.assert_allclose(position, camera_center(cam_from_world), atol=1e-6)
+        assert np.linalg.norm(position - camera_center(truth)) < 0.5
+    for world_from_cam, path in zip(trajectory.poses_se3, named, strict=True):
+        cam_from_world = np.array(poses[str(path)]["cam_from_world"])
+        np.testing.assert_allclose(world_from_cam @ cam_from_world, np.eye(4), atol=1e-6)
+    for path in named:
         picture = cv2.imread(str(overlay / f"{path.stem}.png"))
         assert picture is not None and picture.shape == (scene.camera.height, scene.camera.width, 3)
     assert not leftovers(tmp_path)
+    mode = 0o666 & ~current_umask()
+    for written in (out, tum, *overlay.iterdir()):
+        assert stat.S_IMODE(written.stat().st_mode) == mode, written
+
+
+def current_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
 
 
 def test_demo_smoke(scene, capsys, tmp_path, monkeypatch):
@@ -224,3 +257,89 @@ def test_localize_of_a_featureless_image_is_a_failed_record_not_an_error(small, 
     assert code == 0, err
     record = json.loads((tmp_path / "poses.json").read_text())[str(small / "ok.png")]
     assert record["success"] is False and record["reason"]
+    assert record["timestamp"] == 0.0  # not a number in the file name: the image's place in the batch
+
+
+def test_tum_timestamps_from_numeric_stems_else_positions():
+    from linereg.cli.localize import tum_timestamps
+
+    assert tum_timestamps([Path("a/1305031102.175304.png"), Path("b/12.jpg")]) == [1305031102.175304, 12.0]
+    assert tum_timestamps([Path("img7.png"), Path("3.png")]) == [0.0, 1.0]  # one rule for the batch
+    assert tum_timestamps([Path("a/5.png"), Path("b/5.png")]) == [0.0, 1.0]  # equal stems would collide
+
+
+# --- arguments checked before any work; what a file is when it is not what was expected (issue 8) ---
+
+
+@pytest.fixture
+def no_work(monkeypatch):
+    """Fails the test if localize starts its workers (loads the map)."""
+    import linereg.cli.localize
+
+    def started(*args):
+        raise AssertionError("the work started before the arguments were checked")
+
+    monkeypatch.setattr(linereg.cli.localize, "_init_worker", started)
+
+
+@pytest.mark.parametrize("flag", ["--out", "--tum", "--overlay"])
+def test_localize_refuses_unwritable_outputs_before_any_work(small, tmp_path, capsys, no_work, flag):
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "file.txt").write_text("keep me")
+    target = tmp_path / ("file.txt" if flag == "--overlay" else "folder")
+    argv = [*localize_args(small, tmp_path, [small / "ok.png"]), flag, target]  # the last --out counts
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and "Traceback" not in err
+    assert f"error: {flag} {target}: " in err and len(err.strip().splitlines()) == 1, err
+    assert (tmp_path / "file.txt").read_text() == "keep me" and not (tmp_path / "poses.json").exists()
+
+
+def test_localize_refuses_an_output_under_a_file(small, tmp_path, capsys, no_work):
+    (tmp_path / "file.txt").write_text("")
+    argv = [*localize_args(small, tmp_path, [small / "ok.png"]), "--out", tmp_path / "file.txt" / "p.json"]
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and "--out" in err and "is a file, not a directory" in err
+
+
+def test_map_build_refuses_a_directory_output_before_reading(tmp_path, capsys, monkeypatch):
+    import linereg.io
+
+    monkeypatch.setattr(linereg.io, "read_cloud", lambda path: pytest.fail("read before the check"))
+    (tmp_path / "out").mkdir()
+    write_ply(tmp_path / "c.ply", np.zeros((10, 3)))
+    code, _, err = run(capsys, "map", "build", tmp_path / "c.ply", "-o", tmp_path / "out")
+    assert code == 2 and f"--output {tmp_path / 'out'}: is a directory" in err
+
+
+def test_map_build_of_an_empty_ply_says_empty(tmp_path, capsys):
+    (tmp_path / "zero.ply").write_bytes(b"")
+    code, _, err = run(capsys, "map", "build", tmp_path / "zero.ply", "-o", tmp_path / "out.linemap")
+    assert code == 2 and f"{tmp_path / 'zero.ply'}: empty file" in err and "magic" not in err
+
+
+def test_a_directory_as_map_is_named_a_directory(small, tmp_path, capsys):
+    (tmp_path / "maps").mkdir()
+    code, _, err = run(capsys, "map", "info", tmp_path / "maps")
+    assert code == 2 and f"{tmp_path / 'maps'}: is a directory" in err
+    argv = localize_args(small, tmp_path, [small / "ok.png"], line_map=tmp_path / "maps")
+    code, _, err = run(capsys, *argv)
+    assert code == 2 and f"{tmp_path / 'maps'}: is a directory" in err
+    assert not (tmp_path / "poses.json").exists()
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_random_bytes_as_map_are_not_a_linereg_map(small, tmp_path, capsys, workers):
+    (tmp_path / "noise.linemap").write_bytes(np.random.default_rng(1).bytes(2000))
+    code, _, err = run(capsys, "map", "info", tmp_path / "noise.linemap")
+    assert code == 2 and "noise.linemap: not a linereg map file" in err and "pickle" not in err
+    argv = localize_args(small, tmp_path, [small / "ok.png"], line_map=tmp_path / "noise.linemap")
+    code, _, err = run(capsys, *argv, "--workers", workers)
+    assert code == 2 and "noise.linemap: not a linereg map file" in err and "Traceback" not in err
+
+
+def test_a_truncated_map_is_one_line_with_worker_processes(small, tmp_path, capsys):
+    data = (small / "small.npz").read_bytes()
+    (tmp_path / "cut.linemap").write_bytes(data[: len(data) // 2])
+    argv = localize_args(small, tmp_path, [small / "ok.png"] * 2, line_map=tmp_path / "cut.linemap")
+    code, _, err = run(capsys, *argv, "--workers", 2)
+    assert code == 2 and "cut.linemap: corrupt or truncated" in err and "Traceback" not in err

@@ -1,6 +1,8 @@
 """linereg.io: cloud formats round trip, images, camera files, atomic JSON / TUM writers, bad inputs."""
 
 import json
+import os
+import stat
 from pathlib import Path
 
 import numpy as np
@@ -8,7 +10,7 @@ import pytest
 
 from linereg import io
 from linereg.camera import Camera
-from linereg.errors import FileFormatError
+from linereg.errors import FileFormatError, InvalidInputError
 from linereg.geometry import camera_center, make_cam_from_world
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -197,18 +199,97 @@ def test_json_and_bytes_atomic(tmp_path):
     assert sorted(p.name for p in path.parent.iterdir()) == ["r.json"]
 
 
-def test_tum(tmp_path, rng):
+def test_tum(tmp_path):
     from scipy.spatial.transform import Rotation
 
     R = Rotation.from_rotvec([0.1, -0.2, 0.3]).as_matrix()
     cam_from_world = make_cam_from_world(R, np.array([1.0, 2.0, 3.0]))
-    io.write_tum(tmp_path / "t.txt", [0.5, "img_2.png"], [cam_from_world, np.eye(4)])
+    io.write_tum(tmp_path / "t.txt", [2.0, 0.5], [np.eye(4), cam_from_world])
     lines = [
         line.split() for line in (tmp_path / "t.txt").read_text().splitlines() if not line.startswith("#")
     ]
-    assert lines[0][0] == "0.500000000" and lines[1][0] == "img_2.png"
+    assert [line[0] for line in lines] == ["0.500000000", "2.000000000"]  # in time order
     values = np.array(lines[0][1:], dtype=np.float64)
     np.testing.assert_allclose(values[:3], camera_center(cam_from_world), atol=1e-8)
     world_from_cam_R = Rotation.from_quat(values[3:]).as_matrix()  # TUM quaternion: x y z w
     np.testing.assert_allclose(world_from_cam_R, R.T, atol=1e-8)
     np.testing.assert_allclose(np.array(lines[1][1:], dtype=float), [0, 0, 0, 0, 0, 0, 1], atol=1e-12)
+
+
+def test_tum_is_read_by_evo(tmp_path, rng):
+    from evo.tools import file_interface
+    from scipy.spatial.transform import Rotation
+
+    stamps = [1305031102.175304, 1305031102.211214, 1305031102.243211]
+    poses = [
+        make_cam_from_world(Rotation.from_rotvec(rng.normal(size=3)).as_matrix(), rng.normal(size=3))
+        for _ in stamps
+    ]
+    io.write_tum(tmp_path / "t.tum", stamps, poses)
+    trajectory = file_interface.read_tum_trajectory_file(str(tmp_path / "t.tum"))
+    np.testing.assert_allclose(trajectory.timestamps, stamps, rtol=0, atol=1e-6)
+    np.testing.assert_allclose(trajectory.positions_xyz, [camera_center(p) for p in poses], atol=1e-8)
+    for world_from_cam, cam_from_world in zip(trajectory.poses_se3, poses, strict=True):
+        np.testing.assert_allclose(world_from_cam @ cam_from_world, np.eye(4), atol=1e-8)
+
+
+def test_tum_refuses_file_names_as_timestamps(tmp_path):
+    with pytest.raises(InvalidInputError, match="timestamp"):
+        io.write_tum(tmp_path / "t.tum", ["img_2.png"], [np.eye(4)])
+    with pytest.raises(InvalidInputError, match="timestamp"):
+        io.write_tum(tmp_path / "t.tum", [float("nan")], [np.eye(4)])
+    assert not (tmp_path / "t.tum").exists()
+
+
+def test_json_writes_null_for_nan_and_inf(tmp_path):
+    path = tmp_path / "r.json"
+    record = {"a": float("nan"), "b": [np.float64(np.inf), -np.inf, 1.5], "c": np.array([np.nan, 2.0])}
+    io.write_json_atomic(path, record | {"d": {"e": (np.float32(np.nan), np.int64(3))}})
+    text = path.read_text()
+    assert "NaN" not in text and "Infinity" not in text
+    assert json.loads(text) == {"a": None, "b": [None, None, 1.5], "c": [None, 2.0], "d": {"e": [None, 3]}}
+
+
+@pytest.fixture
+def umask_027():
+    old = os.umask(0o027)
+    yield
+    os.umask(old)
+
+
+def test_written_files_follow_the_umask(tmp_path, umask_027):
+    from linereg.map.linemap import LineMap
+
+    io.write_json_atomic(tmp_path / "a.json", {"x": 1})
+    io.write_tum(tmp_path / "a.tum", [0.0], [np.eye(4)])
+    io.write_image_atomic(tmp_path / "a.png", np.zeros((4, 4), np.uint8))
+    LineMap.from_segments(np.array([[0.0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 1, 0]])).save(tmp_path / "a.linemap")
+    modes = {p.name: stat.S_IMODE(p.stat().st_mode) for p in tmp_path.iterdir()}
+    assert modes == dict.fromkeys(["a.json", "a.tum", "a.png", "a.linemap"], 0o640)  # 0666 & ~027
+    os.umask(0o022)
+    io.write_json_atomic(tmp_path / "a.json", {"x": 2})  # a rewrite too
+    assert stat.S_IMODE((tmp_path / "a.json").stat().st_mode) == 0o644
+
+
+def test_empty_and_directory_inputs_are_named(tmp_path):
+    for name in ("empty.ply", "empty.xyz", "empty.png", "empty.json"):
+        (tmp_path / name).write_bytes(b"")
+    for reader, name in ((io.read_cloud, "empty.ply"), (io.read_cloud, "empty.xyz"),
+                         (io.read_image, "empty.png"), (io.read_cameras, "empty.json")):  # fmt: skip
+        with pytest.raises(FileFormatError, match=rf"{name}: empty file"):
+            reader(tmp_path / name)
+    (tmp_path / "dir.ply").mkdir()
+    with pytest.raises(FileFormatError, match=r"dir\.ply: is a directory"):
+        io.read_cloud(tmp_path / "dir.ply")
+
+
+def test_camera_for_image(tmp_path):
+    shared = Camera(**CAM)
+    assert io.camera_for_image(shared, "any/where.png") is shared
+    other = Camera(**CAM | {"fx": 600.0})
+    cameras = {"a.png": shared, "b": other, "sub/c.png": shared}
+    assert io.camera_for_image(cameras, tmp_path / "a.png") is shared  # by file name
+    assert io.camera_for_image(cameras, tmp_path / "b.jpg") is other  # by stem
+    assert io.camera_for_image(cameras, Path("sub/c.png")) is shared  # by path as given
+    with pytest.raises(InvalidInputError, match=r"cams\.json: no camera for image d\.png"):
+        io.camera_for_image(cameras, tmp_path / "d.png", "cams.json")

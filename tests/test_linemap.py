@@ -126,6 +126,25 @@ def test_missing_and_corrupt_files(line_map, tmp_path):
         LineMap.load(tmp_path / "other.npz")
 
 
+def test_load_says_what_the_file_is_instead(line_map, tmp_path):
+    (tmp_path / "folder.linemap").mkdir()
+    with pytest.raises(FileFormatError, match=r"folder\.linemap: is a directory"):
+        LineMap.load(tmp_path / "folder.linemap")
+    (tmp_path / "empty.linemap").write_bytes(b"")
+    with pytest.raises(FileFormatError, match=r"empty\.linemap: empty file"):
+        LineMap.load(tmp_path / "empty.linemap")
+    (tmp_path / "random.linemap").write_bytes(np.random.default_rng(0).bytes(4096))
+    with pytest.raises(FileFormatError, match=r"random\.linemap: not a linereg map file") as info:
+        LineMap.load(tmp_path / "random.linemap")
+    assert "pickle" not in str(info.value)
+    np.save(tmp_path / "array.npy", np.zeros(3))
+    with pytest.raises(FileFormatError, match=r"array\.npy: not a linereg map file"):
+        LineMap.load(tmp_path / "array.npy")
+    np.savez(tmp_path / "other.npz", x=np.zeros(3))
+    with pytest.raises(FileFormatError, match=r"other\.npz: not a linereg map file"):
+        LineMap.load(tmp_path / "other.npz")
+
+
 def test_build_from_points(rng):
     # two walls meeting at a corner, on a floor: creases along x, y and z
     n = 20000

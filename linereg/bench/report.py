@@ -1,5 +1,5 @@
 """Helpers every benchmark shares: per-cell statistics, a text table, atomic JSON/PNG writes, line plots,
-and a tiny dependency-free progress bar.
+and the progress bar (the CLI's, ``linereg.cli.progress.Progress``: tqdm on stderr).
 
 A benchmark records one dict per trial (see ``trial_record``) and summarises a cell with ``cell_stats``.
 Plots use matplotlib's object API with the Agg canvas only (no pyplot, no global backend switch), so they
@@ -10,14 +10,15 @@ from __future__ import annotations
 
 import json
 import math
-import sys
-import time
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
 from pathlib import Path
-from typing import IO, Any
+from typing import Any
 
 import numpy as np
+
+# the benchmarks' progress bar, one implementation for every entry point: advance(label), note(line), close()
+from ..cli.progress import Progress as Progress
 
 # the paper's success criterion (after Campbell et al. 2018): R_e < 0.1 rad and |t_e| / |t_GT| < 0.1
 SUCCESS_ROTATION_RAD = 0.1
@@ -190,42 +191,6 @@ def save_figure(fig: Any, path: str | Path, dpi: int = 120) -> Path:
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=dpi)
     return write_atomic(path, buf.getvalue())
-
-
-class Progress:
-    """A one-line progress bar on a TTY; elsewhere only the ``note`` lines (one per cell) are printed."""
-
-    def __init__(self, total: int, stream: IO[str] | None = None, width: int = 30) -> None:
-        self.total, self.done, self.width = max(total, 1), 0, width
-        self.stream = stream if stream is not None else sys.stderr
-        self.tty = bool(getattr(self.stream, "isatty", lambda: False)())
-        self._start = time.monotonic()
-        self._label = ""
-
-    def advance(self, label: str = "", n: int = 1) -> None:
-        """Counts ``n`` finished units and redraws the bar (TTY only)."""
-        self.done += n
-        self._label = label or self._label
-        if self.tty:
-            filled = int(self.width * self.done / self.total)
-            bar = "#" * filled + "." * (self.width - filled)
-            eta = (time.monotonic() - self._start) * (self.total - self.done) / max(self.done, 1)
-            self.stream.write(f"\r[{bar}] {self.done}/{self.total} eta {eta:4.0f}s {self._label[:40]:<40}")
-            self.stream.flush()
-
-    def note(self, line: str) -> None:
-        """Prints a line above the bar (TTY) or alone (otherwise)."""
-        if self.tty:
-            self.stream.write("\r" + " " * (self.width + 70) + "\r")
-        self.stream.write(line + "\n")
-        if self.tty:
-            self.advance(n=0)
-        self.stream.flush()
-
-    def close(self) -> None:
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
 
 
 def by_key(rows: Iterable[dict[str, Any]], key: str) -> dict[Any, list[dict[str, Any]]]:

@@ -1,5 +1,7 @@
 """``linereg`` command line: one module per subcommand, each with ``add_parser(subparsers)``.
 
+A subcommand's ``--help`` shows its module docstring through ``description`` (reST literals made plain).
+
 Only entry points configure logging and print; user errors (LineregError) end with a one-line message
 and exit code 2, never a traceback.
 """
@@ -9,12 +11,44 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import os
 import sys
+from pathlib import Path
 
-from ..errors import LineregError
+from ..errors import InvalidInputError, LineregError
 
 # subcommand -> module under linereg.cli (serve/query live in the service layer, imported only when run)
 SUBCOMMANDS = ("demo", "bench", "map", "localize", "serve", "query")
+
+
+def description(doc: str | None) -> str:
+    """Returns a module docstring as ``--help`` text: without reST's double backticks around literals."""
+    return (doc or "").replace("``", "")
+
+
+def check_output_file(flag: str, path: Path) -> None:
+    """Raises InvalidInputError naming ``flag`` unless ``path`` can become a file (checked before any work)."""
+    if path.is_dir():
+        raise InvalidInputError(f"{flag} {path}: is a directory; give a file name")
+    _check_writable_parent(flag, path, path.parent)
+
+
+def check_output_dir(flag: str, path: Path) -> None:
+    """Raises InvalidInputError naming ``flag`` unless ``path`` is or can become a writable directory."""
+    if path.exists() and not path.is_dir():
+        raise InvalidInputError(f"{flag} {path}: is an existing file; give a directory")
+    _check_writable_parent(flag, path, path)
+
+
+def _check_writable_parent(flag: str, path: Path, folder: Path) -> None:
+    """The closest existing ancestor of ``folder`` (itself included) must be a directory we may write in."""
+    existing = folder
+    while not existing.exists() and existing != existing.parent:
+        existing = existing.parent
+    if not existing.is_dir():
+        raise InvalidInputError(f"{flag} {path}: {existing} is a file, not a directory")
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InvalidInputError(f"{flag} {path}: cannot write in {existing} (permission denied)")
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -13,6 +13,8 @@ from __future__ import annotations
 import argparse
 import importlib
 
+from . import description
+
 BENCHMARKS: dict[str, str] = {
     "synthetic": "linereg.bench.synthetic:configure",
     "demo": "linereg.bench.demo:configure",
@@ -25,7 +27,12 @@ BENCHMARKS: dict[str, str] = {
 
 def add_parser(subparsers: argparse._SubParsersAction) -> None:
     """Registers ``bench`` and one sub-subcommand per importable entry of BENCHMARKS."""
-    parser = subparsers.add_parser("bench", help="run a benchmark, print a table, write results and plots")
+    parser = subparsers.add_parser(
+        "bench",
+        help="run a benchmark, print a table, write results and plots",
+        description="Runs one benchmark: it prints a table and writes its results and plots. "
+        "`linereg bench BENCHMARK --help` says what each measures.",
+    )
     sub = parser.add_subparsers(dest="benchmark", required=True, metavar="BENCHMARK")
     for name, target in BENCHMARKS.items():
         module_name, _, function = target.partition(":")
@@ -35,12 +42,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> None:
             if e.name != module_name:  # the module exists but one of its imports is missing: a real bug
                 raise
             continue
-        help_line = (module.__doc__ or name).strip().splitlines()[0]
+        help_line = description(module.__doc__ or name).strip().splitlines()[0]
         getattr(module, function)(
             sub.add_parser(
                 name,
                 help=help_line,
-                description=module.__doc__,
+                description=description(module.__doc__),
                 formatter_class=argparse.RawDescriptionHelpFormatter,
             )
         )

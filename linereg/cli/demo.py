@@ -2,8 +2,9 @@
 
 A procedural building is scanned (simulated terrestrial laser scanner) and photographed from known poses;
 the cloud becomes a line map, a localization service (zenoh on loopback, one worker process) loads it, every
-photo is sent to it as a PNG query, and a table compares the returned poses with the truth. Overlays (photo,
-detected lines red, matched map lines green, map grey) go to ``--out``. ``--in-process`` skips the service.
+photo is sent to it as a PNG query, and a table compares the returned poses with the truth. The map
+(demo.linemap) and one overlay per photo (detected lines red, matched map lines green, other map lines
+grey, with a legend and the outcome) go to ``--out``. ``--in-process`` skips the service.
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import check_output_dir, description
 from .progress import Progress
 
 CORRECT_DEG, CORRECT_M = 2.0, 0.5  # a returned pose this close to the truth counts as right
@@ -24,12 +26,18 @@ CORRECT_DEG, CORRECT_M = 2.0, 0.5  # a returned pose this close to the truth cou
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
-        "demo", help="localize the built-in demo scene's photos in its scan", description=__doc__
+        "demo",
+        help="localize the built-in demo scene's photos in its scan",
+        description=description(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--images", type=int, default=10, help="number of photos (default 10)")
     p.add_argument("--seed", type=int, default=0, help="scene seed (default 0)")
     p.add_argument(
-        "--out", type=Path, default=Path("linereg-demo"), help="overlay folder (default linereg-demo)"
+        "--out",
+        type=Path,
+        default=Path("linereg-demo"),
+        help="folder for the map and the overlays (default linereg-demo)",
     )
     p.add_argument("--in-process", action="store_true", help="call linereg.localize directly, no service")
     p.set_defaults(func=run)
@@ -43,6 +51,7 @@ def run(args: argparse.Namespace) -> int:
     from ..overlay import draw_overlay
     from ..sim.demo_scene import make_demo_scene
 
+    check_output_dir("--out", args.out)
     t0 = time.perf_counter()
     say(f"building the demo scene (seed {args.seed}, {args.images} photos) ...")
     scene = make_demo_scene(seed=args.seed, num_images=args.images)
@@ -53,19 +62,18 @@ def run(args: argparse.Namespace) -> int:
     map_path = args.out / "demo.linemap"
     line_map.save(map_path)
     with _localizer(map_path, line_map, args.in_process) as localize_image:
-        progress = Progress(len(scene.images), "localize")
         rows = []
-        for k, (image, truth) in enumerate(zip(scene.images, scene.cam_from_world, strict=True)):
-            start = time.perf_counter()
-            result = localize_image(image, scene.camera)
-            ms = 1e3 * (time.perf_counter() - start)
-            errors = pose_errors(result.cam_from_world, truth) if result.success else (np.nan,) * 3
-            rows.append((k, result, errors, ms))
-            lines2d = detect(image, scene.camera)
-            picture = draw_overlay(image, scene.camera, lines2d, line_map.segments, result)
-            io.write_image_atomic(args.out / f"demo_{k:02d}.png", picture)
-            progress.update(1, "ok" if result.success else "failed")
-        progress.close()
+        with Progress(len(scene.images), "localize") as progress:
+            for k, (image, truth) in enumerate(zip(scene.images, scene.cam_from_world, strict=True)):
+                start = time.perf_counter()
+                result = localize_image(image, scene.camera)
+                ms = 1e3 * (time.perf_counter() - start)
+                errors = pose_errors(result.cam_from_world, truth) if result.success else (np.nan,) * 3
+                rows.append((k, result, errors, ms))
+                lines2d = detect(image, scene.camera)
+                picture = draw_overlay(image, scene.camera, lines2d, line_map.segments, result)
+                io.write_image_atomic(args.out / f"demo_{k:02d}.png", picture)
+                progress.update(1, "ok" if result.success else "failed")
     print_table(rows)
     say(f"overlays in {args.out}/   whole demo {time.perf_counter() - t0:.1f} s")
     return 0

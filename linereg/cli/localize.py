@@ -1,9 +1,15 @@
-"""``linereg localize --map MAP --camera CAMERA IMAGE... --out poses.json [--tum F] [--overlay DIR]``.
+"""``linereg localize``: the pose of every image in a line map, as JSON (and a TUM trajectory).
 
-Localizes many images in one map: a process pool (each worker loads the map once), results saved
-atomically every few images so a killed batch loses nothing and ``--resume`` skips what is done.
-An image that cannot be used (unreadable, corrupt, another size than its camera) does not stop the batch:
-it is recorded as failed, named on stderr, and the command exits with 2 at the end.
+Example:
+  linereg localize --map site.linemap --camera cameras.json photos/*.png --out poses.json --tum poses.tum
+
+A process pool (each worker loads the map once) localizes the images; results are saved atomically every
+few seconds, so a killed batch loses nothing and ``--resume`` skips what is done. An image that cannot be
+used (unreadable, corrupt, another size than its camera) does not stop the batch: it is recorded as
+failed, named on stderr, and the command exits with 2 at the end.
+
+Each JSON record has a ``timestamp``: the image's time in the ``--tum`` file (the file stems when every
+stem is a number, as in TUM datasets, else the image's position on the command line: 0, 1, 2, ...).
 """
 
 from __future__ import annotations
@@ -11,20 +17,30 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import re
 import sys
 import time
+from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
 from ..errors import InvalidInputError, LineregError
+from . import check_output_dir, check_output_file, description
 from .progress import Progress
 
 log = logging.getLogger(__name__)
 _worker_state: dict = {}
+_NUMBER = re.compile(r"\d+(\.\d+)?")  # a file stem that is a timestamp: 1305031102.175304
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("localize", help="localize images in a line map", description=__doc__)
+    p = sub.add_parser(
+        "localize",
+        help="localize images in a line map",
+        description=description(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("images", nargs="+", type=Path, metavar="IMAGE")
     p.add_argument("--map", required=True, type=Path, help="line map from `linereg map build`")
     p.add_argument(
@@ -43,32 +59,52 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .. import io
+    from ..map.linemap import check_map_file
 
     if args.workers < 1:
         raise InvalidInputError(f"--workers must be >= 1, got {args.workers}")
+    # every argument is checked before the first image is localized: a typo must not cost a batch
+    check_output_file("--out", args.out)
+    if args.tum:
+        check_output_file("--tum", args.tum)
+    if args.overlay:
+        check_output_dir("--overlay", args.overlay)
+    check_map_file(args.map)
     missing = [str(p) for p in args.images if not p.is_file()]
     if missing:
         raise InvalidInputError(f"image file(s) not found: {', '.join(missing[:5])}")
+    if args.config:
+        io.read_config(args.config)  # read again by each worker; a bad file is reported once, here
     cameras = io.read_cameras(args.camera)
-    jobs = [(str(p), _camera_for(cameras, p, args.camera)) for p in args.images]
+    jobs = [(str(p), io.camera_for_image(cameras, p, args.camera)) for p in args.images]
+    stamps = dict(zip((j[0] for j in jobs), tum_timestamps(args.images), strict=True))
     results = io.read_json(args.out) if args.resume and args.out.exists() else {}
+    for path, record in results.items():
+        if path in stamps:
+            record["timestamp"] = stamps[path]
     jobs = [j for j in jobs if j[0] not in results]
     overlay_dir = str(args.overlay) if args.overlay else None
-    progress = Progress(len(jobs), "localize")
     init = (str(args.map), overlay_dir, str(args.config) if args.config else None)
     last_save = time.monotonic()
-    with _executor(args.workers, init) as pool:
-        for path, record in pool.map(_localize_one, jobs):
-            results[path] = record
-            progress.update(1, f"{Path(path).name}: {'ok' if record['success'] else 'failed'}")
-            if time.monotonic() - last_save > 5.0:  # periodic atomic save: a killed batch resumes here
+    with Progress(len(jobs), "localize", log_steps=True) as progress, _executor(args.workers, init) as pool:
+        try:
+            for path, record in pool.map(_localize_one, jobs):
+                results[path] = record | {"timestamp": stamps[path]}
+                progress.update(1, f"{Path(path).name}: {'ok' if record['success'] else 'failed'}")
+                if time.monotonic() - last_save > 5.0:  # periodic atomic save: a killed batch resumes here
+                    io.write_json_atomic(args.out, results)
+                    last_save = time.monotonic()
+        except BrokenProcessPool:  # a worker could not load the map, or died (out of memory, a crash)
+            if results:
                 io.write_json_atomic(args.out, results)
-                last_save = time.monotonic()
-    progress.close()
+            raise LineregError(
+                f"a worker process died ({len(results)} results saved in {args.out}); "
+                "see the messages above, then run again with --resume"
+            ) from None
     io.write_json_atomic(args.out, results)
     if args.tum:
-        ok = [(p, r) for p, r in results.items() if r["success"]]
-        io.write_tum(args.tum, [Path(p).name for p, _ in ok], [r["cam_from_world"] for _, r in ok])
+        ok = [r for r in results.values() if r["success"] and r.get("timestamp") is not None]
+        io.write_tum(args.tum, [r["timestamp"] for r in ok], [r["cam_from_world"] for r in ok])
     done = sum(r["success"] for r in results.values())
     print(f"localized {done}/{len(results)} images -> {args.out}", file=sys.stderr)
     bad = {p: r["reason"] for p, r in results.items() if r.get("input_error")}
@@ -77,13 +113,15 @@ def run(args: argparse.Namespace) -> int:
     return 2 if bad else 0
 
 
-def _camera_for(cameras, image: Path, source: Path):
-    if not isinstance(cameras, dict):
-        return cameras
-    for key in (str(image), image.name, image.stem):
-        if key in cameras:
-            return cameras[key]
-    raise InvalidInputError(f"{source}: no camera for image {image.name}")
+def tum_timestamps(images: Sequence[Path]) -> list[float]:
+    """Returns one TUM timestamp (s) per image: the file stems when all are distinct numbers, else 0, 1, 2...
+
+    One rule for the whole batch: stems and positions mixed could collide or interleave meaninglessly.
+    """
+    stems = [p.stem for p in images]
+    if all(_NUMBER.fullmatch(s) for s in stems) and len({float(s) for s in stems}) == len(stems):
+        return [float(s) for s in stems]
+    return [float(k) for k in range(len(images))]
 
 
 class _InlineExecutor:
@@ -105,7 +143,7 @@ class _InlineExecutor:
 def _executor(workers: int, init: tuple):
     if workers == 1:
         return _InlineExecutor(init)
-    return ProcessPoolExecutor(workers, initializer=_init_worker, initargs=init)
+    return ProcessPoolExecutor(workers, initializer=_init_pool_worker, initargs=init)
 
 
 def _init_worker(map_path: str, overlay_dir: str | None, config_path: str | None) -> None:
@@ -118,6 +156,15 @@ def _init_worker(map_path: str, overlay_dir: str | None, config_path: str | None
     _worker_state["overlay_dir"] = overlay_dir
 
 
+def _init_pool_worker(*init) -> None:
+    """``_init_worker`` in a pool process: a user error is raised by the first job, one line in the parent
+    (an initializer's exception would print a traceback per worker and break the pool)."""
+    try:
+        _init_worker(*init)
+    except LineregError as e:
+        _worker_state["error"] = e
+
+
 def _localize_one(job: tuple) -> tuple[str, dict]:
     from .. import io
     from ..lines2d import detect
@@ -125,6 +172,8 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
     from ..overlay import draw_overlay
 
     path, camera = job
+    if "error" in _worker_state:
+        raise _worker_state["error"]
     line_map = _worker_state["map"]
     try:
         image = io.read_image(path)

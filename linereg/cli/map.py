@@ -1,7 +1,8 @@
 """``linereg map``: build a line map from a point cloud (``build``), or summarise one (``info``).
 
-linereg map build scan.e57 -o site.npz --name site     # .ply .pcd .xyz .txt .las .laz .e57
-linereg map info site.npz
+Examples:
+  linereg map build scan.e57 -o site.linemap --name site   # clouds: .ply .pcd .xyz .txt .las .laz .e57
+  linereg map info site.linemap
 """
 
 from __future__ import annotations
@@ -12,17 +13,25 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from . import check_output_file, description
 from .progress import Progress
 
 STAGES = ("read", "normals", "regions", "lines", "clusters", "write")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
-    p = sub.add_parser("map", help="build or inspect a line map", description=__doc__)
+    p = sub.add_parser(
+        "map",
+        help="build or inspect a line map",
+        description=description(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     maps = p.add_subparsers(dest="map_command", required=True, metavar="ACTION")
     build = maps.add_parser("build", help="extract 3D line segments of a cloud into a map file")
     build.add_argument("cloud", type=Path, help="point cloud: .ply .pcd .xyz .txt .las .laz .e57")
-    build.add_argument("-o", "--output", type=Path, required=True, help="map file to write (.npz)")
+    build.add_argument(
+        "-o", "--output", type=Path, required=True, help="map file to write (e.g. site.linemap)"
+    )
     build.add_argument(
         "--voxel", type=float, default=0.0, metavar="M", help="downsample to this voxel (m) first"
     )
@@ -32,7 +41,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     build.add_argument("--name", default=None, help="map name (default: the cloud's file name)")
     build.set_defaults(func=run_build)
     info = maps.add_parser("info", help="print a summary of a map file")
-    info.add_argument("map", type=Path, help="map file (.npz)")
+    info.add_argument("map", type=Path, help="map file (from `linereg map build`)")
     info.add_argument("--json", action="store_true", help="print the summary as JSON")
     info.set_defaults(func=run_info)
 
@@ -48,21 +57,21 @@ def run_build(args: argparse.Namespace) -> int:
     config = replace(Lines3DConfig(), downsample_m=args.voxel)
     if args.plane_voxel is not None:
         config = replace(config, voxel_m=args.plane_voxel)
-    progress = Progress(len(STAGES), "map build")
-    progress.update(0, "read")
-    start = time.perf_counter()
-    points = read_cloud(args.cloud)
-    line_map = LineMap.build(
-        points,
-        config,
-        name=args.name or args.cloud.stem,
-        progress=lambda stage: progress.update(1, stage),
-        source=str(args.cloud),
-    )
-    progress.update(1, "write")
-    line_map.save(args.output)
-    progress.update(1, "done")
-    progress.close()
+    check_output_file("--output", args.output)  # before minutes of extraction
+    with Progress(len(STAGES), "map build", log_steps=True) as progress:
+        progress.update(0, "read")
+        start = time.perf_counter()
+        points = read_cloud(args.cloud)
+        line_map = LineMap.build(
+            points,
+            config,
+            name=args.name or args.cloud.stem,
+            progress=lambda stage: progress.update(1, stage),
+            source=str(args.cloud),
+        )
+        progress.update(1, "write")
+        line_map.save(args.output)
+        progress.update(1, "done")
     seconds = time.perf_counter() - start
     print(
         f"{args.output}: {len(line_map)} segments, {len(line_map.clusters)} clusters "
@@ -72,11 +81,12 @@ def run_build(args: argparse.Namespace) -> int:
 
 
 def run_info(args: argparse.Namespace) -> int:
+    from ..io import jsonable
     from ..map.linemap import LineMap
 
     summary = LineMap.load(args.map).info()
     if args.json:
-        print(json.dumps(summary, indent=2))
+        print(json.dumps(jsonable(summary), indent=2, allow_nan=False))
         return 0
     print(f"map {summary.get('name')!r} ({args.map}), format version {summary.get('format_version')}")
     print(f"  segments: {summary['num_segments']} (total {summary['total_length_m']:.1f} m)")

@@ -1,4 +1,11 @@
-"""``linereg serve --map MAP``: run the zenoh localization service (the service layer is imported in ``run``)."""
+"""``linereg serve``: run the zenoh localization service of one line map.
+
+Examples:
+  linereg serve --map site.linemap --workers 4    # listens on tcp/127.0.0.1:7447
+  linereg query --camera camera.json photo.png    # a client, from another terminal
+
+Clients reach it at linereg/<map>/localize.
+"""
 
 from __future__ import annotations
 
@@ -7,18 +14,27 @@ import argparse
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Adds the service's flags to ``parser`` (shared with ``python -m service``)."""
-    parser.add_argument("--map", required=True, help="LineMap file to serve")
+    parser.add_argument("--map", required=True, help="line map file to serve (from `linereg map build`)")
     parser.add_argument("--name", help="map name on the network (default: the map's own name)")
     parser.add_argument("--instance", help="instance id in keys and liveliness (default: random)")
     parser.add_argument(
-        "--tile", help="also serve linereg/<map>/tile/<TILE>/localize (map split over instances)"
+        "--tile",
+        help="also serve linereg/<map>/tile/<TILE>/localize (map split over instances; default: none)",
     )
-    parser.add_argument("--workers", type=int, default=2, help="worker processes, each with the map loaded")
+    parser.add_argument(
+        "--workers",
+        type=int,
+        default=2,
+        help="worker processes, each with the map loaded (default %(default)s)",
+    )
     parser.add_argument(
         "--threads-per-worker", type=int, help="BLAS/OpenMP threads per worker (default: cores // workers)"
     )
     parser.add_argument(
-        "--queue", type=int, default=8, help="requests waiting beyond the workers before 'busy'"
+        "--queue",
+        type=int,
+        default=8,
+        help="requests waiting beyond the workers before 'busy' (default %(default)s)",
     )
     parser.add_argument(
         "--mode",
@@ -28,19 +44,42 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--listen", action="append", help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)"
     )
-    parser.add_argument("--connect", action="append", default=[], help="endpoint to connect to (repeatable)")
-    parser.add_argument("--zenoh-config", help="zenoh json5 config file (mode/endpoints flags override it)")
-    parser.add_argument("--deadline-ms", type=int, default=10_000, help="deadline of requests that set none")
-    parser.add_argument("--max-payload-mb", type=float, default=16.0, help="largest accepted request")
     parser.add_argument(
-        "--config", help="JSON file of registration overrides, nested per section (default: the defaults)"
+        "--connect", action="append", default=[], help="endpoint to connect to (repeatable; default: none)"
+    )
+    parser.add_argument(
+        "--zenoh-config", help="zenoh json5 config file; the mode/endpoint flags override it (default: none)"
+    )
+    parser.add_argument(
+        "--deadline-ms",
+        type=int,
+        default=10_000,
+        help="deadline of requests that set none (default %(default)s)",
+    )
+    parser.add_argument(
+        "--max-payload-mb",
+        type=float,
+        default=16.0,
+        help="largest accepted request in MiB (default %(default)s)",
+    )
+    parser.add_argument(
+        "--config", help="JSON file of registration overrides, nested per section (default: none)"
     )
     parser.add_argument("--engine", default="service.engine:load_map_engine", help=argparse.SUPPRESS)
-    parser.add_argument("--plain-logs", action="store_true", help="text logs instead of JSON lines")
+    parser.add_argument(
+        "--plain-logs", action="store_true", help="text logs instead of JSON lines (default: JSON lines)"
+    )
 
 
 def add_parser(subparsers) -> None:
-    parser = subparsers.add_parser("serve", help="serve a map over zenoh", description=__doc__)
+    from . import description
+
+    parser = subparsers.add_parser(
+        "serve",
+        help="serve a map over zenoh",
+        description=description(__doc__),
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     add_arguments(parser)
     parser.set_defaults(func=run)
 
@@ -68,7 +107,7 @@ def config_from_args(args: argparse.Namespace):
 def run(args: argparse.Namespace) -> int:
     import logging
 
-    from service import logs, server
+    from service import logs, server  # the service layer (zenoh) only when serving: linereg never imports it
 
     logs.configure(
         logging.getLogger().getEffectiveLevel() if args.verbose else logging.INFO, not args.plain_logs

@@ -13,6 +13,7 @@ import logging
 import os
 import uuid
 import zipfile
+import zlib
 from collections.abc import Callable
 from dataclasses import asdict
 from datetime import UTC, datetime
@@ -128,10 +129,12 @@ class LineMap:
     def load(cls, path: str | os.PathLike) -> LineMap:
         """Returns the map stored at ``path``; FileFormatError if missing, corrupt or of another version."""
         path = Path(path)
-        if not path.is_file():
-            raise FileFormatError(f"{path}: no such map file")
+        check_map_file(path)
         try:
             with np.load(path, allow_pickle=False) as npz:
+                missing = [k for k in ("metadata", *_ARRAYS) if k not in npz.files]
+                if missing:
+                    raise FileFormatError(f"{path}: not a linereg map file (an .npz without {missing[0]!r})")
                 metadata = json.loads(str(npz["metadata"]))
                 version = metadata.get("format_version") if isinstance(metadata, dict) else None
                 if version != FORMAT_VERSION:
@@ -141,8 +144,10 @@ class LineMap:
                 arrays = {k: npz[k] for k in _ARRAYS}
         except FileFormatError:
             raise
-        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError) as e:
-            raise FileFormatError(f"{path}: not a readable line map file ({type(e).__name__}: {e})") from None
+        except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError, zlib.error) as e:
+            raise FileFormatError(
+                f"{path}: corrupt or truncated line map file ({type(e).__name__}: {e})"
+            ) from None
         clusters = DirectionClusters(arrays["directions"], arrays["labels"], arrays["support"])
         index = (arrays["tile_keys"], arrays["tile_ptr"], arrays["tile_members"])
         line_map = cls(arrays["segments"].astype(np.float64), clusters, metadata, index)
@@ -234,6 +239,30 @@ class LineMap:
 
 
 # ---------------------------------------------------------------------------------------------- helpers
+
+
+def check_map_file(path: str | os.PathLike) -> None:
+    """Raises FileFormatError naming ``path`` unless it is a readable file that starts like a map (.npz).
+
+    Reads only the first bytes: entry points check ``--map`` with it before any work.
+    """
+    path = Path(path)
+    if path.is_dir():
+        raise FileFormatError(f"{path}: is a directory, not a line map file")
+    if not path.is_file():
+        raise FileFormatError(f"{path}: no such map file")
+    try:
+        with open(path, "rb") as f:
+            head = f.read(len(_NPZ_MAGIC))
+    except OSError as e:
+        raise FileFormatError(f"{path}: cannot read the map file ({e.strerror})") from None
+    if not head:
+        raise FileFormatError(f"{path}: empty file, not a line map")
+    if head != _NPZ_MAGIC:
+        raise FileFormatError(f"{path}: not a linereg map file (written by `linereg map build`)")
+
+
+_NPZ_MAGIC = b"PK\x03\x04"  # a map is an .npz: a zip archive
 
 
 def _no_clusters() -> DirectionClusters:
