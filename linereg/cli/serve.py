@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import argparse
 
+DEFAULT_ENGINE = "service.engine:load_map_engine"
+
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Adds the service's flags to ``parser`` (shared with ``python -m service``)."""
@@ -65,7 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", help="JSON file of registration overrides, nested per section (default: none)"
     )
-    parser.add_argument("--engine", default="service.engine:load_map_engine", help=argparse.SUPPRESS)
+    parser.add_argument("--engine", default=DEFAULT_ENGINE, help=argparse.SUPPRESS)
     parser.add_argument(
         "--plain-logs", action="store_true", help="text logs instead of JSON lines (default: JSON lines)"
     )
@@ -108,6 +110,11 @@ def run(args: argparse.Namespace) -> int:
     import logging
 
     from service import logs, server  # the service layer (zenoh) only when serving: linereg never imports it
+
+    from ..map.linemap import check_map_file
+
+    if args.engine == DEFAULT_ENGINE:  # a test engine may take no map file
+        check_map_file(args.map)  # a wrong --map in one line, before workers and a session start
 
     logs.configure(
         logging.getLogger().getEffectiveLevel() if args.verbose else logging.INFO, not args.plain_logs
