@@ -31,6 +31,9 @@ class Lines3DConfig:
     min_region_area_m2: float = 0.1  # smaller regions (clutter) give neither contours nor creases
     cell_m: float = 0.0  # raster cell of a region's contour; 0 = cell_spacings x the region's point spacing
     cell_spacings: float = 1.5  # a little coarser than the sampling: few empty cells (false holes) inside
+    # a spinning LiDAR's rings lie range x this angle apart (set by ``map.profile`` with the sensor origin):
+    # a region's raster cell is at least that x its range, else its raster falls apart between rings
+    ring_cell_deg: float = 0.0
     # rasters are coarsened beyond this many pixels, to bound memory (a 6 km^2 plane in 1 cm cells: 6e10)
     max_raster_pixels: int = 40_000_000
     approx_cells: float = 1.5  # polygon approximation tolerance of a contour (cells)
@@ -76,14 +79,40 @@ class Lines3DConfig:
 
 @dataclass(frozen=True)
 class MapProfileConfig:
-    """Map-building limits from the cloud's median point spacing s (``map.profile.lines3d_config_for``):
-    a dense RGB-D room shows furniture-scale faces and edges that the building-scale defaults drop."""
+    """What kind of cloud it is and the map-building parameters that follow (``map.profile``): a dense
+    RGB-D room shows furniture-scale faces and edges that the building-scale defaults drop; a spinning
+    LiDAR's rings lie a range-proportional gap apart, which a region's raster must bridge."""
 
-    spacing_sample: int = 20_000  # points whose nearest-neighbour distances estimate s
+    spacing_sample: int = 20_000  # points whose nearest-neighbour distances estimate the spacing s
     length_spacings: float = 12.0  # shortest segment 12 s ...
     min_length_range_m: tuple[float, float] = (0.15, 0.3)  # ... clipped to this (upper end: the default)
     area_spacings: float = 15.0  # smallest region (15 s)^2: some 15 points a side give straight contours ...
     min_area_range_m2: tuple[float, float] = (0.03, 0.1)  # ... clipped to this (upper end: the default)
+    # plane-fit voxels of voxel_spacings x s (enough points to fit, small enough for a shelf board),
+    # clipped to this range (upper end: the default)
+    voxel_spacings: float = 6.0
+    voxel_range_m: tuple[float, float] = (0.05, 0.1)
+    # a cloud whose points lie this many x farther apart at the 90th than the 10th percentile of the
+    # spacing was sampled from a point (a scanner), not voxelised or fused into an even density
+    uneven_ratio: float = 4.0
+    dense_spacing_m: float = 0.025  # an even cloud this dense is an RGB-D fusion (a room); coarser: a map
+    # scan rings: consecutive points (scan order) this close in azimuth belong to one ring ...
+    ring_step_deg: float = 2.0
+    min_ring_points: int = 100  # ... rings are runs of at least this many points ...
+    min_ring_span_deg: float = 45.0  # ... turning this far in azimuth (a cropped sweep: the camera's view)
+    min_rings: int = 8  # ... and a sweep has at least this many ...
+    # ... and at most this many (128 lasers, each split where its turn crosses the back): a fused cloud
+    # stored in grid order has hundreds of runs; else rings by quantised elevation:
+    max_rings: int = 300
+    elevation_bin_deg: float = 0.05
+    elevation_peak_share: float = 0.8  # this share of the points in at most 10 % of the elevation bins
+    # a region's raster cell is at least this share of the ring gap at its range (the closing bridges one
+    # empty cell between rings)
+    ring_cell_share: float = 0.6
+    # points sampled to estimate the noise: the rms distance to the plane of their 16 nearest neighbours
+    noise_sample: int = 2000
+    noise_distances: float = 3.0  # a region holds points within this many noise rms of its plane ...
+    distance_range_m: tuple[float, float] = (0.03, 0.08)  # ... clipped to this (lower end: the default)
 
 
 @dataclass(frozen=True)
@@ -97,6 +126,68 @@ class PlaneDirectionsConfig:
     crease_min_angle_deg: float = 20.0
     in_plane_deg: float = 3.0  # a direction this close to a plane's surface lies in it
     max_regions: int = 2000  # only the largest regions vote: they hold the area; the (R, R) test stays small
+
+
+@dataclass(frozen=True)
+class VisibilityConfig:
+    """Which map segments a camera sees (``map.visibility``): frustum, occlusion by the map's surfaces."""
+
+    sample_px: float = 3.0  # a segment is ray-cast at samples this far apart in the image
+    max_samples: int = 4000  # ... at most this many per segment (a segment across a 4K image)
+    min_depth_m: float = 0.05  # points nearer than this to the camera plane are not seen
+    # a sample is hidden when a surface lies this much nearer than it along its ray: segments lying ON a
+    # surface (the map's own boundaries and creases) must not hide themselves, and the mesh is
+    # rasterised (a cell off) and the range noisier far away
+    depth_tolerance_m: float = 0.05
+    depth_tolerance_fraction: float = 0.02  # ... plus this fraction of the sample's range
+    # potentially-visible sets: cells of this size (m; 0 = the map's largest extent / 16, at least 0.5 m)
+    pvs_cell_m: float = 0.0
+    pvs_piece_m: float = 0.25  # segments are cut into pieces this long; a piece hidden by one occluder
+    pvs_max_occluders: int = 400  # the largest surface rectangles tested as occluders (the rest: no culling)
+    pvs_margin_m: float = 0.02  # an occluder must lie this clear of the box and of the piece it hides
+
+
+@dataclass(frozen=True)
+class SensorEdgesConfig:
+    """Edges seen from the sensor of a single sweep (``map.sensor_edges``): depth discontinuities and
+    sharp bends along the scan rings of a spinning LiDAR."""
+
+    # a neighbour along the ring this much farther (fraction of the range, plus jump_m) is behind an
+    # occluding contour: the nearer point is on the silhouette
+    jump_fraction: float = 0.1
+    jump_m: float = 0.3
+    # LOAM's smoothness: |sum of the 2 w neighbours' range differences| / (2 w range) above this is a bend
+    window: int = 5
+    bend: float = 0.08
+    # edge points of neighbouring rings join one edge when within this many ring gaps of each other ...
+    link_gaps: float = 1.6
+    max_link_m: float = 1.5  # ... and no farther than this
+    line_tolerance_fraction: float = 0.012  # a point belongs to a line within this fraction of its range
+    min_points: int = 4  # points of one edge (at least as many rings cross it)
+    min_length_m: float = 0.3  # shorter edges are dropped
+    min_ring_points: int = 50  # a ring with fewer points gives no edges
+    along_plane_m: float = 0.1  # an edge this close along a plane's boundary or crease is that line
+
+
+@dataclass(frozen=True)
+class MapBuildConfig:
+    """Everything ``LineMap.build`` needs, one section per stage of map building."""
+
+    lines3d: Lines3DConfig = field(default_factory=Lines3DConfig)
+    profile: MapProfileConfig = field(default_factory=MapProfileConfig)
+    sensor: SensorEdgesConfig = field(default_factory=SensorEdgesConfig)
+    visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
+    # choose the cloud-dependent fields of ``lines3d`` from the cloud (``map.profile``); fields set to
+    # other values than their defaults are kept as given
+    adapt: bool = True
+    sensor_edges: bool = True  # occluding contours and ring edges where the sensor origin is known
+    surfaces: bool = True  # keep the planar regions as a mesh (occlusion-aware visibility)
+    mesh_cell_m: float = 0.1  # the surface mesh's cells are at least this (and the region's raster cell)
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> MapBuildConfig:
+        """Returns the default config with the keys of ``d`` (nested per section) overridden."""
+        return _override(cls(), d, "config")
 
 
 @dataclass(frozen=True)

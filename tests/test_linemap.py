@@ -103,7 +103,7 @@ def test_other_version_is_refused(line_map, tmp_path):
     old = tmp_path / "old.npz"
     _rewrite_metadata(path, old, format_version=FORMAT_VERSION + 1)
     with pytest.raises(
-        FileFormatError, match=rf"old\.npz.*version {FORMAT_VERSION + 1}.*supported: {FORMAT_VERSION}"
+        FileFormatError, match=rf"old\.npz.*version {FORMAT_VERSION + 1}.*supported: 1, {FORMAT_VERSION}"
     ):
         LineMap.load(old)
 
@@ -154,7 +154,7 @@ def test_build_from_points(rng):
     points = np.concatenate([wall_a, wall_b, floor]) + rng.normal(0, 0.002, (3 * n, 3))
     stages = []
     line_map = LineMap.build(points, name="corner", progress=stages.append)
-    assert stages == ["normals", "regions", "lines", "clusters"]
+    assert stages == ["profile", "normals", "regions", "lines", "clusters"]
     assert len(line_map) >= 6 and len(line_map.clusters) == 3
     assert line_map.metadata["point_count"] == 3 * n and line_map.metadata["extraction"]["voxel_m"] > 0
 

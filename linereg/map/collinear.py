@@ -3,6 +3,8 @@
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -14,8 +16,14 @@ def drop_near(
 ) -> np.ndarray:
     """Returns the (k, 6) segments that do not run along a reference segment (within (k,) ``distance``
     and angle_deg): a region's contour along a crease is the crease's intersection line, only less exact."""
+    return segments[~along(segments, reference, distance, angle_deg)]
+
+
+def along(segments: np.ndarray, reference: np.ndarray, distance: np.ndarray, angle_deg: float) -> np.ndarray:
+    """Returns (k,) bool: does each (k, 6) segment run along one of the (r, 6) reference segments (both its
+    ends within (k,) ``distance`` of it, its direction within angle_deg)?"""
     if len(segments) == 0 or len(reference) == 0:
-        return segments
+        return np.zeros(len(segments), dtype=bool)
     distance = np.asarray(distance)[:, None]
     r0, r1 = reference[:, :3], reference[:, 3:]
     rlen = np.linalg.norm(r1 - r0, axis=1)
@@ -27,27 +35,31 @@ def drop_near(
     sdir = segments[:, 3:] - segments[:, :3]
     sdir /= np.linalg.norm(sdir, axis=1, keepdims=True)
     near &= np.abs(sdir @ rdir.T) >= np.cos(np.radians(angle_deg))
-    return segments[~near.any(axis=1)]
+    return np.asarray(near.any(axis=1))
 
 
-def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig) -> np.ndarray:
-    """Returns (K, 6) segments with collinear, overlapping or nearly touching pieces merged into one.
+def merge_collinear(
+    segments: np.ndarray, priority: np.ndarray, config: Lines3DConfig, return_seeds: bool = False
+) -> Any:
+    """Returns (K, 6) segments with collinear, overlapping or nearly touching pieces merged into one
+    (with ``return_seeds``: and the (K,) int64 input row each merged segment grew from).
 
     Seeds go by (priority, longest first); a seed keeps its own line and grows to cover the extent of
     every segment within collinear_angle_deg, collinear_distance_m of it and collinear_gap_m along it.
     """
     if len(segments) == 0:
-        return np.zeros((0, 6))
+        return (np.zeros((0, 6)), np.zeros(0, np.int64)) if return_seeds else np.zeros((0, 6))
+    rows = np.arange(len(segments))
     p, q = segments[:, :3], segments[:, 3:]
     lengths = np.linalg.norm(q - p, axis=1)
     keep = lengths > 1e-9
-    p, q, lengths, priority = p[keep], q[keep], lengths[keep], priority[keep]
+    p, q, lengths, priority, rows = p[keep], q[keep], lengths[keep], priority[keep], rows[keep]
     dirs = (q - p) / lengths[:, None]
     seed_of, member, lo, hi = _collinear_pairs(p, q, dirs, config)
     starts = np.searchsorted(seed_of, np.arange(len(p) + 1))
     gap = config.collinear_gap_m
     free = np.ones(len(p), dtype=bool)
-    out = []
+    out, seeds = [], []
     for i in np.lexsort((-lengths, priority)):
         if not free[i]:
             continue
@@ -63,7 +75,9 @@ def merge_collinear(segments: np.ndarray, priority: np.ndarray, config: Lines3DC
                 free[cand[take]] = False
         if t1 - t0 >= config.min_length_m:
             out.append(np.r_[p[i] + t0 * dirs[i], p[i] + t1 * dirs[i]])
-    return np.array(out).reshape(-1, 6)
+            seeds.append(rows[i])
+    merged = np.array(out).reshape(-1, 6)
+    return (merged, np.array(seeds, dtype=np.int64)) if return_seeds else merged
 
 
 def _collinear_pairs(p: np.ndarray, q: np.ndarray, dirs: np.ndarray, config: Lines3DConfig):

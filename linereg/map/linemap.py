@@ -1,8 +1,11 @@
-"""The line map: 3D segments of a point cloud, their parallel clusters, a tile index and metadata.
+"""The line map: 3D segments of a point cloud, their kinds, parallel clusters, the surfaces they came from,
+a tile index and metadata.
 
 Built once from a cloud (``LineMap.build``) and saved as one ``.npz`` file whose ``metadata`` entry is
-JSON (format version, units, frame, extraction parameters, ...). The tile index is a uniform grid over
-the two largest extents of the map; a segment is listed in every tile it passes through.
+JSON (format version, units, frame, the cloud's profile, extraction parameters, ...). The tile index is a
+uniform grid over the two largest extents of the map (``tiles``); a segment is listed in every tile it
+passes through. Format version 2 added ``kinds`` and the surface mesh; version-1 files still load (kinds
+unknown, no surfaces: visibility is the frustum test only).
 """
 
 from __future__ import annotations
@@ -23,35 +26,58 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..config import Lines3DConfig, ParallelConfig
+from ..config import Lines3DConfig, MapBuildConfig, ParallelConfig, VisibilityConfig
 from ..directions import DirectionClusters
-from ..errors import FileFormatError, InvalidInputError
+from ..errors import FileFormatError
 from ..geometry import camera_center
 from ..registration import check_segments
+from . import kinds as segment_kinds
+from .surfaces import Surfaces, make_surfaces
+from .tiles import TILE_KEY_SPAN, bounds, flat, grid, point_segment_distance, tile_index
+from .visibility import Visibility
+
+__all__ = ["FORMAT_VERSION", "TILE_KEY_SPAN", "LineMap", "check_map_file"]
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+SUPPORTED_VERSIONS = (1, 2)
 _ARRAYS = ("segments", "directions", "labels", "support", "tile_keys", "tile_ptr", "tile_members")
+_ARRAYS_V2 = ("kinds", "surface_vertices", "surface_triangles", "surface_origin")
 
 
 class LineMap:
-    """3D segments (M, 6) float64 metres with parallel ``clusters``, a tile index and ``metadata``."""
+    """3D segments (M, 6) float64 metres with their (M,) int8 ``kinds`` (``map.kinds``), parallel
+    ``clusters``, the ``surfaces`` they came from (a mesh, or None), a tile index and ``metadata``."""
 
     def __init__(
-        self, segments: np.ndarray, clusters: DirectionClusters, metadata: dict[str, Any], index=None
+        self,
+        segments: np.ndarray,
+        clusters: DirectionClusters,
+        metadata: dict[str, Any],
+        index=None,
+        kinds: np.ndarray | None = None,
+        surfaces: Surfaces | None = None,
     ):
         self.segments = segments
         self.clusters = clusters
         self.metadata = metadata
-        grid = metadata["grid"]
-        self._axes = np.asarray(grid["axes"], dtype=np.int64)
-        self._origin = np.asarray(grid["origin"], dtype=np.float64)
-        self.tile_m = float(grid["tile_m"])
-        index = index if index is not None else _tile_index(segments, grid)
+        self.kinds = (
+            np.zeros(len(segments), np.int8)
+            if kinds is None
+            else segment_kinds.check_kinds(kinds, len(segments))
+        )
+        self.surfaces = surfaces if surfaces is not None and len(surfaces) else None
+        self.cache: dict[str, Any] = {}  # what queries derive from the map once (``localization.map_view``)
+        tiles = metadata["grid"]
+        self._axes = np.asarray(tiles["axes"], dtype=np.int64)
+        self._origin = np.asarray(tiles["origin"], dtype=np.float64)
+        self.tile_m = float(tiles["tile_m"])
+        index = index if index is not None else tile_index(segments, tiles)
         self._keys, self._ptr, self._members = index
         # (T, 2) i, j of each tile
         self._cells = np.stack(np.divmod(self._keys, TILE_KEY_SPAN), axis=1) - TILE_KEY_SPAN // 2
+        self._visibility: Visibility | None = None
 
     # ------------------------------------------------------------------------------------ construction
 
@@ -59,24 +85,40 @@ class LineMap:
     def build(
         cls,
         points: np.ndarray,
-        config: Lines3DConfig | None = None,
+        config: MapBuildConfig | Lines3DConfig | None = None,
         name: str = "map",
         parallel_config: ParallelConfig | None = None,
         progress: Callable[[str], None] | None = None,
+        sensor_origin: np.ndarray | None = None,
         **metadata: Any,
     ) -> LineMap:
-        """Returns the map of (P, 3) float64 points: segments by ``lines3d.extract``, then clusters.
-
-        ``progress(stage)`` is called as stages start (normals, regions, lines, clusters).
+        """Returns the map of (P, 3) float64 points (``build.extract_map``: parameters from the cloud's
+        profile, segments with their kinds, surfaces), then clusters. A ``Lines3DConfig`` is the base whose
+        default-valued fields the profile chooses. ``sensor_origin`` (3,): where the scanner stood, if
+        known. ``progress(stage)`` is called as stages start (profile, normals, regions, lines, clusters).
+        An empty map says why in ``metadata["empty_reason"]``.
         """
-        from .lines3d import check_points, extract
+        from .build import extract_map
 
-        config = config or Lines3DConfig()
-        points = check_points(points)
-        segments = extract(points, config, progress=progress)
-        extra: dict[str, Any] = {"point_count": len(points), "extraction": asdict(config)} | metadata
+        if isinstance(config, Lines3DConfig):
+            config = MapBuildConfig(lines3d=config)
+        config = config or MapBuildConfig()
+        content = extract_map(points, config, sensor_origin, progress)
+        extra: dict[str, Any] = {
+            "point_count": content.profile.num_points,
+            "profile": content.profile.as_dict(),
+            "extraction": asdict(content.config),
+        }
+        if content.reason:
+            extra["empty_reason"] = content.reason
         return cls.from_segments(
-            segments, name=name, parallel_config=parallel_config, progress=progress, **extra
+            content.segments,
+            name=name,
+            parallel_config=parallel_config,
+            progress=progress,
+            kinds=content.kinds,
+            surfaces=content.surfaces,
+            **(extra | metadata),
         )
 
     @classmethod
@@ -87,12 +129,19 @@ class LineMap:
         parallel_config: ParallelConfig | None = None,
         tile_m: float | None = None,
         progress: Callable[[str], None] | None = None,
+        kinds: np.ndarray | None = None,
+        surfaces: Surfaces | tuple[np.ndarray, np.ndarray] | None = None,
         **metadata: Any,
     ) -> LineMap:
-        """Returns the map of given (M, 6) float64 segments; ``tile_m`` defaults to 1/32 of the extent."""
+        """Returns the map of given (M, 6) float64 segments; ``tile_m`` defaults to 1/32 of the extent;
+        ``kinds`` (M,) int (default ``kinds.UNKNOWN``); ``surfaces``: a Surfaces or (vertices (V, 3),
+        triangles (T, 3)) in the map frame that may hide segments (default none)."""
         from ..parallel import parallel_clusters  # imported here: the map format does not depend on it
 
         segments = check_segments(lines3d, "lines3d", 6)
+        kinds = None if kinds is None else segment_kinds.check_kinds(kinds, len(segments))
+        if isinstance(surfaces, tuple):
+            surfaces = make_surfaces(*surfaces)
         if progress:
             progress("clusters")
         clusters = parallel_clusters(segments, parallel_config) if len(segments) else _no_clusters()
@@ -105,29 +154,38 @@ class LineMap:
             "point_count": None,
             "extraction": None,
             "created": datetime.now(UTC).isoformat(timespec="seconds"),
-            "bounds": _bounds(segments).tolist(),
+            "bounds": bounds(segments).tolist(),
             "num_segments": len(segments),
-            "grid": _grid(segments, tile_m),
+            "grid": grid(segments, tile_m),
         } | metadata
-        return cls(segments, clusters, meta)
+        return cls(segments, clusters, meta, kinds=kinds, surfaces=surfaces)
 
     # ------------------------------------------------------------------------------------ files
 
     def save(self, path: str | os.PathLike) -> None:
-        """Writes the map to one .npz file, atomically."""
+        """Writes the map to one .npz file (format version 2), atomically."""
         from ..io import write_bytes_atomic
 
         buffer = _bytes_io.BytesIO()
         c = self.clusters
         arrays = (self.segments, c.directions, c.labels, c.support, self._keys, self._ptr, self._members)
-        np.savez_compressed(
-            buffer, metadata=np.array(json.dumps(self.metadata)), **dict(zip(_ARRAYS, arrays, strict=True))
+        s = self.surfaces
+        mesh = (
+            (s.vertices, s.triangles, s.origin)
+            if s is not None
+            else (np.zeros((0, 3), np.float32), np.zeros((0, 3), np.int32), np.zeros(3))
         )
+        named = dict(zip(_ARRAYS, arrays, strict=True)) | dict(
+            zip(_ARRAYS_V2, (self.kinds, *mesh), strict=True)
+        )
+        metadata = self.metadata | {"format_version": FORMAT_VERSION}
+        np.savez_compressed(buffer, metadata=np.array(json.dumps(metadata)), **named)
         write_bytes_atomic(path, buffer.getvalue())
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> LineMap:
-        """Returns the map stored at ``path``; FileFormatError if missing, corrupt or of another version."""
+        """Returns the map stored at ``path``; FileFormatError if missing, corrupt or of another version.
+        A version-1 file loads without kinds (all unknown) and without surfaces."""
         path = Path(path)
         check_map_file(path)
         try:
@@ -137,11 +195,16 @@ class LineMap:
                     raise FileFormatError(f"{path}: not a linereg map file (an .npz without {missing[0]!r})")
                 metadata = json.loads(str(npz["metadata"]))
                 version = metadata.get("format_version") if isinstance(metadata, dict) else None
-                if version != FORMAT_VERSION:
+                if version not in SUPPORTED_VERSIONS:
                     raise FileFormatError(
-                        f"{path}: line map format version {version!r} is not supported (supported: {FORMAT_VERSION})"
+                        f"{path}: line map format version {version!r} is not supported (supported: "
+                        f"{', '.join(map(str, SUPPORTED_VERSIONS))})"
                     )
-                arrays = {k: npz[k] for k in _ARRAYS}
+                names = _ARRAYS + (_ARRAYS_V2 if version >= 2 else ())
+                missing = [k for k in names if k not in npz.files]
+                if missing:
+                    raise FileFormatError(f"{path}: corrupt line map file (no {missing[0]!r})")
+                arrays = {k: npz[k] for k in names}
         except FileFormatError:
             raise
         except (OSError, ValueError, KeyError, zipfile.BadZipFile, EOFError, zlib.error) as e:
@@ -150,7 +213,14 @@ class LineMap:
             ) from None
         clusters = DirectionClusters(arrays["directions"], arrays["labels"], arrays["support"])
         index = (arrays["tile_keys"], arrays["tile_ptr"], arrays["tile_members"])
-        line_map = cls(arrays["segments"].astype(np.float64), clusters, metadata, index)
+        surfaces, kinds = None, None
+        if version >= 2:
+            kinds = arrays["kinds"]
+            mesh = (arrays["surface_vertices"], arrays["surface_triangles"], arrays["surface_origin"])
+            surfaces = Surfaces(
+                mesh[0].astype(np.float32), mesh[1].astype(np.int32), mesh[2].astype(np.float64)
+            )
+        line_map = cls(arrays["segments"].astype(np.float64), clusters, metadata, index, kinds, surfaces)
         logger.info("%s: %d segments, %d clusters", path, len(line_map), len(clusters))
         return line_map
 
@@ -173,7 +243,7 @@ class LineMap:
     def tile_of(self, position: np.ndarray) -> int:
         """Returns the id of the tile holding a (3,) position (it may be empty)."""
         cell = np.floor((np.asarray(position, dtype=np.float64)[self._axes] - self._origin) / self.tile_m)
-        return int(_flat(cell.astype(np.int64)[None])[0])
+        return int(flat(cell.astype(np.int64)[None])[0])
 
     def segments_near(self, position: np.ndarray, radius_m: float) -> np.ndarray:
         """Returns the (k,) int64 sorted indices of segments within ``radius_m`` (3D) of a (3,) position."""
@@ -184,7 +254,7 @@ class LineMap:
         inside = np.flatnonzero(((self._cells >= lo) & (self._cells <= hi)).all(axis=1))
         parts = [self._members[self._ptr[p] : self._ptr[p + 1]] for p in inside]
         cand = np.unique(np.concatenate([np.zeros(0, np.int64), *parts]))
-        return cand[_point_segment_distance(position, self.segments[cand]) <= radius_m]
+        return cand[point_segment_distance(position, self.segments[cand]) <= radius_m]
 
     def visible(
         self,
@@ -203,17 +273,42 @@ class LineMap:
             if prior_position is None or radius_m is None:
                 return np.arange(len(self.segments))
             return self.segments_near(prior_position, radius_m)
-        from ..matching import project_segments
-
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
         center = camera_center(cam_from_world) if prior_position is None else prior_position
         cand = np.arange(len(self.segments)) if radius_m is None else self.segments_near(center, radius_m)
-        pixels, in_front = project_segments(self.segments[cand], camera, cam_from_world, min_depth_m)
-        x, y = pixels[:, [0, 2]], pixels[:, [1, 3]]
+        R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+        a, b = self.segments[cand, :3] @ R.T + t, self.segments[cand, 3:] @ R.T + t
+        in_front = (a[:, 2] > min_depth_m) & (b[:, 2] > min_depth_m)
+        z = np.maximum(np.stack([a[:, 2], b[:, 2]], axis=1), min_depth_m)
+        x = camera.fx * np.stack([a[:, 0], b[:, 0]], axis=1) / z + camera.cx
+        y = camera.fy * np.stack([a[:, 1], b[:, 1]], axis=1) / z + camera.cy
         # a conservative box test: the segment's bounding box meets the image
         inside = (x.max(1) >= -0.5) & (x.min(1) <= camera.width - 0.5)
         inside &= (y.max(1) >= -0.5) & (y.min(1) <= camera.height - 0.5)
         return cand[in_front & inside]
+
+    def visibility(self, config: VisibilityConfig | None = None) -> Visibility:
+        """Returns the map's visibility queries (built on first use; a ``config`` replaces the cached one)."""
+        if self._visibility is None or (config is not None and config != self._visibility.config):
+            self._visibility = Visibility(self.segments, self.surfaces, config)
+        return self._visibility
+
+    def visible_parts(
+        self, camera: Camera, cam_from_world: np.ndarray, index: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ((K, 6) float64 world sub-segments visible from the camera: in front of it, inside its
+        image, not hidden by the map's surfaces; (K,) int64 the row of ``segments`` each came from).
+
+        A segment partly hidden gives its visible runs; ``index`` restricts to those rows (None: all).
+        Without surfaces: the frustum test only. See ``map.visibility``.
+        """
+        return self.visibility().visible_parts(camera, cam_from_world, index)
+
+    def potentially_visible(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Returns (k,) int64 sorted rows of the segments that may be visible from some camera centre in
+        the axis-aligned box [lo, hi] ((3,) each); conservative (never leaves out a segment visible from a
+        point of the box). Sets per cell are computed on first use and cached."""
+        return self.visibility().potentially_visible(lo, hi)
 
     def info(self) -> dict[str, Any]:
         """Returns a JSON-ready summary: metadata, segment count, clusters (direction, size, support)."""
@@ -228,9 +323,17 @@ class LineMap:
         ]
         meta = {k: v for k, v in self.metadata.items() if k != "grid"}
         lengths = np.linalg.norm(self.segments[:, 3:] - self.segments[:, :3], axis=1)
+        if self.surfaces is not None:
+            surfaces: dict[str, Any] = {"triangles": len(self.surfaces), "area_m2": self.surfaces.area_m2()}
+        elif self.metadata.get("format_version") == 1:
+            surfaces = {"triangles": 0, "note": "format version 1 map: no surfaces (frustum-only visibility)"}
+        else:
+            surfaces = {"triangles": 0, "note": "no surfaces (frustum-only visibility)"}
         return meta | {
             "num_segments": len(self.segments),
             "total_length_m": float(lengths.sum()),
+            "kinds": segment_kinds.kind_counts(self.kinds),
+            "surfaces": surfaces,
             "num_tiles": len(self._keys),
             "tile_m": self.tile_m,
             "clusters": clusters,
@@ -267,58 +370,3 @@ _NPZ_MAGIC = b"PK\x03\x04"  # a map is an .npz: a zip archive
 
 def _no_clusters() -> DirectionClusters:
     return DirectionClusters(np.zeros((0, 3)), np.zeros(0, dtype=np.int64), np.zeros(0))
-
-
-def _bounds(segments: np.ndarray) -> np.ndarray:
-    """Returns (2, 3) min / max corner of all endpoints (zeros for an empty map)."""
-    if len(segments) == 0:
-        return np.zeros((2, 3))
-    ends = segments.reshape(-1, 3)
-    return np.stack([ends.min(axis=0), ends.max(axis=0)])
-
-
-def _grid(segments: np.ndarray, tile_m: float | None) -> dict[str, Any]:
-    """Returns the tile grid: the two axes of largest extent, their origin and the tile size (m)."""
-    bounds = _bounds(segments)
-    extent = bounds[1] - bounds[0]
-    axes = np.sort(np.argsort(-extent, kind="stable")[:2])
-    if tile_m is None:
-        tile_m = max(float(extent.max()) / 32.0, 1.0)
-    if not tile_m > 0:
-        raise InvalidInputError(f"tile_m must be positive, got {tile_m}")
-    return {"axes": axes.tolist(), "origin": bounds[0][axes].tolist(), "tile_m": float(tile_m)}
-
-
-TILE_KEY_SPAN = 1 << 31  # tile (i, j) -> one int64 id (i + span/2) * span + j + span/2, |i|, |j| < 2**30
-
-
-def _flat(cells: np.ndarray) -> np.ndarray:
-    return (cells[:, 0] + TILE_KEY_SPAN // 2) * TILE_KEY_SPAN + (cells[:, 1] + TILE_KEY_SPAN // 2)
-
-
-def _tile_index(segments: np.ndarray, grid: dict[str, Any]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (keys (T,), ptr (T + 1,), members (K,)): segments of tile keys[t] = members[ptr[t]:ptr[t+1]]."""
-    axes, origin, tile = np.asarray(grid["axes"]), np.asarray(grid["origin"]), float(grid["tile_m"])
-    a, b = segments[:, 0:3][:, axes], segments[:, 3:6][:, axes]
-    # sample every segment at a quarter tile: it then visits every tile it passes through
-    steps = np.ceil(np.linalg.norm(b - a, axis=1) / (0.25 * tile)).astype(np.int64) + 1
-    seg = np.repeat(np.arange(len(segments)), steps)
-    frac = (np.arange(len(seg)) - np.repeat(np.cumsum(steps) - steps, steps)) / np.repeat(
-        np.maximum(steps - 1, 1), steps
-    )
-    xy = a[seg] + frac[:, None] * (b[seg] - a[seg])
-    keys = _flat(np.floor((xy - origin) / tile).astype(np.int64))
-    pairs = np.unique(np.stack([keys, seg], axis=1), axis=0) if len(seg) else np.zeros((0, 2), np.int64)
-    tile_keys, starts = np.unique(pairs[:, 0], return_index=True)
-    ptr = np.r_[starts, len(pairs)].astype(np.int64)
-    return tile_keys.astype(np.int64), ptr, pairs[:, 1].astype(np.int64)
-
-
-def _point_segment_distance(point: np.ndarray, segments: np.ndarray) -> np.ndarray:
-    """Returns (k,) distances of a (3,) point to (k, 6) finite segments."""
-    a, b = segments[:, :3], segments[:, 3:]
-    ab = b - a
-    t = np.clip(
-        np.einsum("ij,ij->i", point - a, ab) / np.maximum(np.einsum("ij,ij->i", ab, ab), 1e-300), 0, 1
-    )
-    return np.linalg.norm(a + t[:, None] * ab - point, axis=1)

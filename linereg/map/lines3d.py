@@ -20,14 +20,16 @@ from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
 from ..errors import InvalidInputError
+from . import kinds
 from .collinear import drop_near, merge_collinear
 from .contours import image_contours, image_lines, plane_basis, region_image
 from .creases import crease_segments
 from .edge_refine import refine_edges
 from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
 from .planes import Planes, segment_planes, voxel_downsample
+from .surfaces import Surfaces, concat_surfaces, empty_surfaces, raster_mesh
 
-__all__ = ["check_points", "extract", "lines_from_planes", "merge_collinear"]
+__all__ = ["check_points", "extract", "lines_and_surfaces", "lines_from_planes", "merge_collinear"]
 
 logger = logging.getLogger(__name__)
 
@@ -56,14 +58,33 @@ def extract(
 
 def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig) -> np.ndarray:
     """Returns (M, 6) float64 merged contour and crease segments of the regions of (P, 3) local points."""
+    return lines_and_surfaces(points, planes, config)[0]
+
+
+def lines_and_surfaces(
+    points: np.ndarray,
+    planes: Planes,
+    config: Lines3DConfig,
+    mesh_cell_m: float = 0.0,
+    sensor: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray, Surfaces]:
+    """Returns ((M, 6) float64 merged contour and crease segments of the regions of (P, 3) local points,
+    (M,) int8 their kinds (``kinds.CREASE``, ``kinds.BOUNDARY``), the regions' surface rectangles in cells
+    of at least ``mesh_cell_m`` (local frame; inf: none)); ``sensor`` (3,): the scanner's local position,
+    for ``config.ring_cell_deg``."""
+    none = (np.zeros((0, 6)), np.zeros(0, np.int8), empty_surfaces())
     if len(planes.counts) == 0:
-        return np.zeros((0, 6))
+        return none
     # raster cells follow each region's own density (a scanner's falls with range)
     cells = (
         np.full(len(planes.counts), config.cell_m)
         if config.cell_m > 0
         else config.cell_spacings * planes.spacing_m
     )
+    if sensor is not None and config.ring_cell_deg > 0:
+        # a sweep's rings lie range x gap apart: a finer raster falls apart between them
+        reach = np.linalg.norm(planes.centroids - sensor, axis=1)
+        cells = np.maximum(cells, reach * np.radians(config.ring_cell_deg))
     cells = np.maximum(cells, 1e-3)
     order = np.argsort(planes.labels, kind="stable")
     bounds = np.searchsorted(planes.labels[order], np.arange(len(planes.counts) + 1))
@@ -88,11 +109,17 @@ def lines_from_planes(points: np.ndarray, planes: Planes, config: Lines3DConfig)
         near_m.append(np.full(len(found), 2.0 * frame.cell))
     contour = drop_near(np.concatenate(contours), creases, np.concatenate(near_m), 10.0)
     segments = np.concatenate([creases, contour])
+    kind = np.r_[np.full(len(creases), kinds.CREASE), np.full(len(contour), kinds.BOUNDARY)].astype(np.int8)
     # creases are exact plane intersections: they win over the (rasterised) contour along the same line
     priority = np.r_[np.zeros(len(creases)), np.ones(len(contour))]
-    merged = merge_collinear(segments, priority, config)
+    merged, seeds = merge_collinear(segments, priority, config, return_seeds=True)
     logger.debug("%d crease + %d contour segments -> %d merged", len(creases), len(contour), len(merged))
-    return merged
+    meshes = [
+        raster_mesh(f.image, f.lo, f.cell, (reg.centroid, f.basis), mesh_cell_m)
+        for f, reg in zip(frames, regions, strict=True)
+        if np.isfinite(mesh_cell_m)
+    ]
+    return merged, kind[seeds], concat_surfaces(meshes, np.zeros(3))
 
 
 def check_points(points: object) -> np.ndarray:
@@ -115,13 +142,16 @@ class Region(NamedTuple):
 
 class Frame(NamedTuple):
     """A region in its plane: (2, 3) in-plane axes, (n, 2) points, (k, 4) candidate lines, raster cell,
-    the raster's contours as (m, 2) in-plane pixel centres."""
+    the raster's contours as (m, 2) in-plane pixel centres, the (H, W) uint8 raster and (2,) the plane
+    coordinates of its pixel (0, 0)'s corner."""
 
     basis: np.ndarray
     uv: np.ndarray
     lines: np.ndarray
     cell: float
     outlines: list[np.ndarray]
+    image: np.ndarray
+    lo: np.ndarray
 
 
 def candidates(points: np.ndarray, region: Region, config: Lines3DConfig) -> Frame:
@@ -137,7 +167,7 @@ def candidates(points: np.ndarray, region: Region, config: Lines3DConfig) -> Fra
     outlines = [
         lo + (c.reshape(-1, 2) + 0.5) * cell for c in contours if len(c) * cell >= 4 * config.min_length_m
     ]
-    return Frame(basis, uv, uv_lines, cell, outlines)
+    return Frame(basis, uv, uv_lines, cell, outlines, image, lo)
 
 
 def to_world(lines: np.ndarray, region: Region, basis: np.ndarray) -> np.ndarray:

@@ -1,0 +1,105 @@
+"""A line map's content from a point cloud: what ``LineMap.build`` runs.
+
+1. Profile the cloud (``profile``: spacing, noise, scan rings) and choose the extraction parameters from it.
+2. Planar regions (``planes``), their boundaries and creases, their surfaces as a mesh (``lines3d``).
+3. Where the sensor origin is known and the cloud is a single sweep with rings: occluding contours and
+   ring-curvature edges (``sensor_edges``), those not already along a plane's edge.
+Each segment is tagged with its kind (``kinds``).
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+from typing import NamedTuple
+
+import numpy as np
+
+from ..config import Lines3DConfig, MapBuildConfig
+from . import kinds
+from .collinear import along
+from .lines3d import check_points, lines_and_surfaces
+from .planes import segment_planes, voxel_downsample
+from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
+from .surfaces import Surfaces, concat_surfaces, empty_surfaces
+
+logger = logging.getLogger(__name__)
+
+
+class MapContent(NamedTuple):
+    """What map building found: (M, 6) float64 ``segments``, (M,) int8 ``kinds``, the ``surfaces`` mesh, the
+    cloud's ``profile``, the ``config`` used and, for an empty map, the ``reason``."""
+
+    segments: np.ndarray
+    kinds: np.ndarray
+    surfaces: Surfaces
+    profile: CloudProfile
+    config: Lines3DConfig
+    reason: str
+
+
+def extract_map(
+    points: np.ndarray,
+    config: MapBuildConfig | None = None,
+    sensor_origin: np.ndarray | None = None,
+    progress: Callable[[str], None] | None = None,
+) -> MapContent:
+    """Returns the MapContent of (P, 3) float64 points (their frame); ``sensor_origin`` (3,): where the
+    scanner stood, if known (a single sweep in its sensor's frame has it at the origin: found by its
+    rings). ``progress(stage)`` is called as the stages profile, normals, regions, lines start."""
+    config = config or MapBuildConfig()
+    points = check_points(points)
+    if sensor_origin is not None:
+        sensor_origin = np.asarray(sensor_origin, dtype=np.float64).reshape(3)
+        if not np.isfinite(sensor_origin).all():
+            from ..errors import InvalidInputError
+
+            raise InvalidInputError(f"sensor_origin must be finite, got {sensor_origin}")
+    if progress:
+        progress("profile")
+    profile = profile_cloud(points, sensor_origin, config.profile)
+    lines_config = adapted_config(profile, config.lines3d, config.profile) if config.adapt else config.lines3d
+    if len(points) == 0:
+        return _empty(profile, lines_config, "the cloud holds no points")
+    # georeferenced coordinates (5e6 m) keep their precision only after a shift; min() is exact
+    offset = points.min(axis=0)
+    local = points - offset
+    if lines_config.downsample_m > 0:
+        local = voxel_downsample(local, lines_config.downsample_m)
+    sensor = None if profile.sensor_origin is None else np.asarray(profile.sensor_origin) - offset
+    planes = segment_planes(local, lines_config, progress)
+    if progress:
+        progress("lines")
+    mesh_cell = config.mesh_cell_m if config.surfaces else np.inf
+    segments, kind, surfaces = lines_and_surfaces(local, planes, lines_config, mesh_cell, sensor)
+    if config.sensor_edges and sensor is not None and profile.rings:
+        from .sensor_edges import sensor_edges
+
+        ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
+        found, found_kind = sensor_edges(points - offset, ring, sensor, config.sensor)
+        # an edge along a plane's boundary or crease is that line (exactly fitted to its plane)
+        keep = ~along(found, segments, np.full(len(found), config.sensor.along_plane_m), 10.0)
+        segments = np.concatenate([segments, found[keep]])
+        kind = np.r_[kind, found_kind[keep]].astype(np.int8)
+    if not config.surfaces:
+        surfaces = empty_surfaces()
+    reason = "" if len(segments) else _why_empty(len(planes.counts), lines_config)
+    logger.info("%s cloud: %d segments (%s)", profile.kind, len(segments), kinds.kind_counts(kind))
+    surfaces = concat_surfaces([surfaces], offset) if len(surfaces) else empty_surfaces()
+    return MapContent(segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason)
+
+
+def _why_empty(num_regions: int, config: Lines3DConfig) -> str:
+    if num_regions == 0:
+        return (
+            f"no planar region of at least {config.min_region_points} points within {config.distance_m} m of "
+            "a plane (a line of points, scattered points or clutter give no plane edges)"
+        )
+    return (
+        f"{num_regions} planar regions, but none has a straight edge of at least {config.min_length_m} m "
+        f"or covers {config.min_region_area_m2} m^2"
+    )
+
+
+def _empty(profile: CloudProfile, config: Lines3DConfig, reason: str) -> MapContent:
+    return MapContent(np.zeros((0, 6)), np.zeros(0, np.int8), empty_surfaces(), profile, config, reason)

@@ -1,0 +1,301 @@
+"""Which map segments a camera sees: in front of it, inside its image, not hidden by the map's surfaces.
+
+``visible_parts``: each segment is clipped to the near plane, sampled every ``sample_px`` pixels of its
+image and each sample ray-cast from the camera centre against the surface mesh (open3d's
+``RaycastingScene``); runs of visible samples are the visible sub-segments. A segment lying ON a surface
+(a plane's boundary, a crease) meets it at its own range, so a sample is hidden only by a surface nearer
+than its range by a tolerance that grows with range.
+
+``potentially_visible``: the segments visible from SOME point of an axis-aligned box, conservatively. A
+piece of a segment is hidden from the whole box by one convex occluder (a surface rectangle) exactly when
+the box and the piece lie strictly on opposite sides of the occluder's plane and the 8 x 2 crossings of
+that plane by the lines from the box corners to the piece ends fall inside the occluder: the crossing of
+any line from the box to the piece lies in the convex hull of those 16 (central projection keeps segments
+straight). A segment is left out only when all its pieces are hidden, each by one occluder.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from ..camera import Camera
+from ..config import VisibilityConfig
+from ..geometry import camera_center
+from .surfaces import Surfaces
+
+
+class Visibility:
+    """Visibility queries over (M, 6) float64 ``segments`` and the ``surfaces`` (or None) that may hide
+    them; the ray-casting scene, the occluders and the potentially-visible sets are built on first use."""
+
+    def __init__(
+        self, segments: np.ndarray, surfaces: Surfaces | None, config: VisibilityConfig | None = None
+    ):
+        self.segments = segments
+        self.surfaces = surfaces if surfaces is not None and len(surfaces) else None
+        self.config = config or VisibilityConfig()
+        self._scene: Any = None
+        self._occluders: tuple[np.ndarray, np.ndarray] | None = None
+        self._pieces: tuple[np.ndarray, np.ndarray] | None = None
+        self._pvs: dict[tuple[int, ...], np.ndarray] = {}
+
+    # ------------------------------------------------------------------------------------ one camera
+
+    def visible_parts(
+        self, camera: Camera, cam_from_world: np.ndarray, index: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ((K, 6) float64 visible world sub-segments, (K,) int64 row of the segment each came
+        from) of the rows ``index`` (None: all) seen by the pinhole ``camera`` at (4, 4) ``cam_from_world``."""
+        cfg = self.config
+        rows = np.arange(len(self.segments)) if index is None else np.asarray(index, dtype=np.int64)
+        cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
+        R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+        seg = self.segments[rows]
+        a, b = seg[:, :3] @ R.T + t, seg[:, 3:] @ R.T + t
+        t0, t1, ok = _clip_near(a[:, 2], b[:, 2], cfg.min_depth_m)
+        t0, t1, ok = _clip_image(a, b, t0, t1, ok, camera)
+        rows, a, b, t0, t1 = rows[ok], a[ok], b[ok], t0[ok], t1[ok]
+        # samples uniform in the image: a segment's 2D parameter s maps to t = s z_a / (z_b (1-s) + s z_a)
+        p0, p1 = _pixel(camera, a + t0[:, None] * (b - a)), _pixel(camera, a + t1[:, None] * (b - a))
+        count = np.clip(np.ceil(np.linalg.norm(p1 - p0, axis=1) / cfg.sample_px), 1, cfg.max_samples)
+        count = count.astype(np.int64) + 1
+        owner = np.repeat(np.arange(len(rows)), count)
+        first = np.cumsum(count) - count
+        s = (np.arange(len(owner)) - first[owner]) / (count[owner] - 1)
+        za, zb = (a + t0[:, None] * (b - a))[:, 2], (a + t1[:, None] * (b - a))[:, 2]
+        u = s * za[owner] / (zb[owner] * (1.0 - s) + s * za[owner])
+        tt = t0[owner] + u * (t1 - t0)[owner]
+        world = self.segments[rows][owner]
+        points = world[:, :3] + tt[:, None] * (world[:, 3:] - world[:, :3])
+        seen = self._unoccluded(points, camera_center(cam_from_world))
+        return _runs(self.segments[rows], rows, owner, tt, seen, count)
+
+    def _unoccluded(self, points: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        """Returns (S,) bool: is no surface nearer than each (S, 3) point along its ray from (3,) centre?"""
+        if self.surfaces is None or len(points) == 0:
+            return np.ones(len(points), dtype=bool)
+        from .._open3d import open3d
+
+        o3d = open3d()
+        scene = self._raycasting_scene()
+        origin = self.surfaces.origin
+        rays = np.empty((len(points), 6), dtype=np.float32)
+        rays[:, :3] = centre - origin
+        rays[:, 3:] = points - centre  # unnormalised: the point lies at t = 1
+        hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+        dist = np.linalg.norm(points - centre, axis=1)
+        tol = self.config.depth_tolerance_m + self.config.depth_tolerance_fraction * dist
+        return hit >= 1.0 - tol / np.maximum(dist, 1e-9)
+
+    def _raycasting_scene(self) -> Any:
+        if self._scene is None:
+            from .._open3d import open3d
+
+            o3d = open3d()
+            scene = o3d.t.geometry.RaycastingScene()
+            assert self.surfaces is not None
+            scene.add_triangles(
+                o3d.core.Tensor(np.ascontiguousarray(self.surfaces.vertices, dtype=np.float32)),
+                o3d.core.Tensor(np.ascontiguousarray(self.surfaces.triangles, dtype=np.uint32)),
+            )
+            self._scene = scene
+        return self._scene
+
+    # ------------------------------------------------------------------------------------ a box of centres
+
+    def cell_m(self) -> float:
+        """Returns the edge (m) of the cells whose potentially-visible sets are cached."""
+        if self.config.pvs_cell_m > 0:
+            return self.config.pvs_cell_m
+        ends = self.segments.reshape(-1, 3)
+        extent = float(np.ptp(ends, axis=0).max()) if len(ends) else 0.0
+        return max(extent / 16.0, 0.5)
+
+    def potentially_visible(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Returns (k,) int64 sorted rows of the segments that may be visible from some point of the box
+        [lo, hi] ((3,) each): never leaves out a segment visible from a point of the box."""
+        lo, hi = np.asarray(lo, dtype=np.float64).reshape(3), np.asarray(hi, dtype=np.float64).reshape(3)
+        if not (np.isfinite(lo).all() and np.isfinite(hi).all()) or (hi < lo).any():
+            from ..errors import InvalidInputError
+
+            raise InvalidInputError(f"potentially_visible needs finite lo <= hi, got {lo}, {hi}")
+        if self.surfaces is None or len(self.segments) == 0:
+            return np.arange(len(self.segments))
+        size = self.cell_m()
+        c0, c1 = np.floor(lo / size).astype(np.int64), np.floor(hi / size).astype(np.int64)
+        cells = np.stack(np.meshgrid(*[np.arange(i, j + 1) for i, j in zip(c0, c1, strict=True)]), -1)
+        cells = cells.reshape(-1, 3)
+        if len(cells) > 27:  # a big box: one test of the box rounded out to cells (still conservative)
+            return self._box_set((*c0, *c1), c0 * size, (c1 + 1) * size)
+        sets = [self._box_set((*c, *c), c * size, (c + 1) * size) for c in cells]
+        return np.unique(np.concatenate(sets))
+
+    def _box_set(self, key: tuple[int, ...], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        if key not in self._pvs:
+            self._pvs[key] = self._not_hidden(lo, hi)
+        return self._pvs[key]
+
+    def _not_hidden(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+        """Returns (k,) int64 rows of the segments not hidden, piece by piece, by single occluders from
+        every point of the box [lo, hi]."""
+        corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1).reshape(8, 3)
+        polygons, normals = self._occluder_set()
+        ends, owner = self._piece_set()
+        margin = self.config.pvs_margin_m
+        open_ = np.ones(len(owner), dtype=bool)
+        for poly, n in zip(polygons, normals, strict=True):
+            side_box = (corners - poly[0]) @ n
+            if not ((side_box > margin).all() or (side_box < -margin).all()):
+                continue
+            sign = 1.0 if side_box[0] > 0 else -1.0
+            cand = np.flatnonzero(open_)
+            e = ends[cand]  # (c, 2, 3)
+            side = sign * ((e - poly[0]) @ n)  # (c, 2): the box side is positive
+            cand, e, side = (
+                cand[(side < -margin).all(1)],
+                e[(side < -margin).all(1)],
+                side[(side < -margin).all(1)],
+            )
+            if len(cand) == 0:
+                continue
+            sb = sign * side_box  # (8,) positive
+            # crossing of corner c -> end e with the plane: c + (e - c) sb / (sb - se)
+            w = sb[None, None, :] / (sb[None, None, :] - side[:, :, None])  # (c, 2, 8)
+            x = corners[None, None] + w[..., None] * (e[:, :, None, :] - corners[None, None])
+            inside = _in_convex(x.reshape(len(cand), -1, 3), poly, n).all(axis=1)
+            open_[cand[inside]] = False
+        return np.unique(owner[open_])
+
+    def _occluder_set(self) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ((Q, 4, 3) convex polygons in the map frame, (Q, 3) unit normals): the mesh's
+        rectangles (triangle pairs 2k, 2k + 1 sharing an edge) and lone triangles, largest first."""
+        if self._occluders is None:
+            assert self.surfaces is not None
+            v = self.surfaces.world_vertices()[self.surfaces.triangles]  # (T, 3, 3)
+            polys = _quads(v, self.surfaces.triangles)
+            n = np.cross(polys[:, 1] - polys[:, 0], polys[:, 2] - polys[:, 0])
+            area = np.linalg.norm(n, axis=1)
+            keep = np.argsort(-area, kind="stable")[: self.config.pvs_max_occluders]
+            keep = keep[area[keep] > 1e-9]
+            self._occluders = (polys[keep], n[keep] / area[keep, None])
+        return self._occluders
+
+    def _piece_set(self) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ((N, 2, 3) piece ends, (N,) int64 segment of each): segments cut into pvs_piece_m."""
+        if self._pieces is None:
+            a, b = self.segments[:, :3], self.segments[:, 3:]
+            count = np.maximum(np.ceil(np.linalg.norm(b - a, axis=1) / self.config.pvs_piece_m), 1)
+            count = count.astype(np.int64)
+            owner = np.repeat(np.arange(len(a)), count)
+            k = np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)
+            f0, f1 = k / count[owner], (k + 1) / count[owner]
+            d = (b - a)[owner]
+            ends = np.stack([a[owner] + f0[:, None] * d, a[owner] + f1[:, None] * d], axis=1)
+            self._pieces = (ends, owner)
+        return self._pieces
+
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def _pixel(camera: Camera, x: np.ndarray) -> np.ndarray:
+    """Returns (N, 2) pixels of (N, 3) camera-frame points in front of the camera."""
+    return np.c_[camera.fx * x[:, 0] / x[:, 2] + camera.cx, camera.fy * x[:, 1] / x[:, 2] + camera.cy]
+
+
+def _clip_near(za: np.ndarray, zb: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (t0, t1, ok) (N,) each: the parameter range of a + t (b - a) with depth >= near."""
+    t0, t1 = np.zeros(len(za)), np.ones(len(za))
+    dz = zb - za
+    with np.errstate(divide="ignore", invalid="ignore"):
+        cross = (near - za) / dz
+    t0 = np.where((za < near) & (zb >= near), cross, t0)
+    t1 = np.where((zb < near) & (za >= near), cross, t1)
+    return t0, t1, ~((za < near) & (zb < near))
+
+
+def _clip_image(
+    a: np.ndarray, b: np.ndarray, t0: np.ndarray, t1: np.ndarray, ok: np.ndarray, camera: Camera
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (t0, t1, ok) narrowed to the stretch whose projection lies inside the image (Liang-Barsky
+    on the 2D segment, its parameters mapped back to 3D: t = s z_a / (z_b (1 - s) + s z_a))."""
+    pa, pb = a + t0[:, None] * (b - a), a + t1[:, None] * (b - a)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p0, p1 = _pixel(camera, pa), _pixel(camera, pb)
+        d = p1 - p0
+        s0, s1 = np.zeros(len(a)), np.ones(len(a))
+        bounds = (
+            (0, -0.5, 1.0),
+            (0, camera.width - 0.5, -1.0),
+            (1, -0.5, 1.0),
+            (1, camera.height - 0.5, -1.0),
+        )
+        for axis, edge, inward in bounds:
+            q = inward * (p0[:, axis] - edge)  # >= 0: inside this edge at s = 0
+            r = inward * d[:, axis]
+            cut = -q / r
+            s0 = np.where(r > 0, np.maximum(s0, cut), s0)
+            s1 = np.where(r < 0, np.minimum(s1, cut), s1)
+            ok = ok & ~((r == 0) & (q < 0))
+        ok = ok & (s1 > s0) & np.isfinite(s0) & np.isfinite(s1)
+        za, zb = pa[:, 2], pb[:, 2]
+        u0 = s0 * za / (zb * (1 - s0) + s0 * za)
+        u1 = s1 * za / (zb * (1 - s1) + s1 * za)
+    span = t1 - t0
+    return np.where(ok, t0 + u0 * span, 0.0), np.where(ok, t0 + u1 * span, 0.0), ok
+
+
+def _runs(
+    segments: np.ndarray,
+    rows: np.ndarray,
+    owner: np.ndarray,
+    tt: np.ndarray,
+    seen: np.ndarray,
+    count: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the runs of >= 2 consecutive visible samples of each segment as (K, 6) sub-segments and their
+    (K,) rows; samples (S,) of segment ``owner`` at parameter ``tt`` (sorted per segment)."""
+    seen_i = seen.astype(np.int8)
+    last = np.r_[owner[1:] != owner[:-1], True]
+    starts = seen & np.r_[True, ~seen[:-1] | (owner[1:] != owner[:-1])]
+    ends = seen & (last | np.r_[seen_i[1:] == 0, False])
+    i0, i1 = np.flatnonzero(starts), np.flatnonzero(ends)
+    long = i1 > i0
+    i0, i1 = i0[long], i1[long]
+    g = owner[i0]
+    a, b = segments[g, :3], segments[g, 3:]
+    out = np.concatenate([a + tt[i0, None] * (b - a), a + tt[i1, None] * (b - a)], axis=1)
+    return out, rows[g].astype(np.int64)
+
+
+def _quads(v: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """Returns (Q, 4, 3) convex polygons (a triangle repeats its last vertex) of (T, 3, 3) triangle
+    corners: pairs (2k, 2k + 1) sharing their first and third vertices (``surfaces.raster_mesh``) form
+    one rectangle."""
+    t = len(triangles)
+    pair = np.zeros(t // 2, dtype=bool)
+    if t >= 2:
+        first, second = triangles[0 : t - t % 2 : 2], triangles[1 : t - t % 2 : 2]
+        pair = (first[:, 0] == second[:, 0]) & (first[:, 2] == second[:, 1])
+    polys = [np.concatenate([v[0 : 2 * len(pair) : 2][pair], v[1 : 2 * len(pair) : 2][pair][:, 2:3]], axis=1)]
+    lone = np.ones(t, dtype=bool)
+    lone[np.flatnonzero(pair) * 2] = False
+    lone[np.flatnonzero(pair) * 2 + 1] = False
+    polys.append(np.concatenate([v[lone], v[lone][:, 2:3]], axis=1))
+    return np.concatenate(polys).reshape(-1, 4, 3)
+
+
+def _in_convex(x: np.ndarray, poly: np.ndarray, n: np.ndarray) -> np.ndarray:
+    """Returns (..., P) bool: do points (..., P, 3) on the plane of the convex (4, 3) polygon (normal n) lie
+    inside it (edges of zero length, a triangle's repeated vertex, are skipped)?"""
+    inside = np.ones(x.shape[:-1], dtype=bool)
+    for k in range(4):
+        edge = poly[(k + 1) % 4] - poly[k]
+        if edge @ edge < 1e-18:
+            continue
+        inward = np.cross(n, edge)  # points into a counter-clockwise polygon (about n)
+        inside &= (x - poly[k]) @ inward >= -1e-9 * math.sqrt(edge @ edge)
+    return inside

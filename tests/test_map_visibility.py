@@ -1,0 +1,220 @@
+"""Occlusion-aware visibility of map segments: visible parts and potentially-visible sets against a
+brute-force ray test on a synthetic scene (a box in front of a wall)."""
+
+import numpy as np
+import pytest
+
+from linereg.camera import Camera
+from linereg.errors import InvalidInputError
+from linereg.geometry import make_cam_from_world
+from linereg.map.linemap import LineMap
+from linereg.map.surfaces import make_surfaces, raster_mesh, raster_rectangles
+
+CAMERA = Camera(fx=400.0, fy=400.0, cx=319.5, cy=239.5, width=640, height=480)
+
+
+def quad_triangles(corners):
+    """Returns ((4, 3) vertices, (2, 3) triangles) of a rectangle given by its 4 corners in order."""
+    return np.asarray(corners, float), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def box_faces(lo, hi):
+    """Returns the 6 faces of an axis-aligned box as lists of 4 corners."""
+    x0, y0, z0 = lo
+    x1, y1, z1 = hi
+    return [
+        [(x0, y0, z0), (x0, y1, z0), (x0, y1, z1), (x0, y0, z1)],
+        [(x1, y0, z0), (x1, y1, z0), (x1, y1, z1), (x1, y0, z1)],
+        [(x0, y0, z0), (x1, y0, z0), (x1, y0, z1), (x0, y0, z1)],
+        [(x0, y1, z0), (x1, y1, z0), (x1, y1, z1), (x0, y1, z1)],
+        [(x0, y0, z0), (x1, y0, z0), (x1, y1, z0), (x0, y1, z0)],
+        [(x0, y0, z1), (x1, y0, z1), (x1, y1, z1), (x0, y1, z1)],
+    ]
+
+
+def scene():
+    """Returns (segments (M, 6), faces list of 4 corners): a wall at x = 10 with its edges and a grid of
+    lines on it, a box (x 6..7, y -1..1, z 0..1.5) in front with its edges."""
+    wall = [(10, -5, 0), (10, 5, 0), (10, 5, 3), (10, -5, 3)]
+    segs = [[*wall[k], *wall[(k + 1) % 4]] for k in range(4)]
+    segs += [[10, y, 0.2, 10, y, 2.8] for y in np.linspace(-4, 4, 9)]  # vertical lines on the wall
+    segs += [[10, -4.5, z, 10, 4.5, z] for z in (0.5, 1.0, 2.0)]
+    lo, hi = np.array([6.0, -1, 0]), np.array([7.0, 1, 1.5])
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    for i in range(8):
+        for j in range(i + 1, 8):
+            if np.sum(corners[i] != corners[j]) == 1:
+                segs.append([*corners[i], *corners[j]])
+    return np.array(segs, float), [wall, *box_faces(lo, hi)]
+
+
+def mesh(faces):
+    """Returns ((4 F, 3) vertices, (2 F, 3) triangles) of F rectangles."""
+    vertices = np.concatenate([quad_triangles(f)[0] for f in faces])
+    triangles = np.concatenate([quad_triangles(f)[1] + 4 * k for k, f in enumerate(faces)])
+    return vertices, triangles
+
+
+def hits_before(origin, points, faces, tol):
+    """Returns (S,) bool: does the segment origin -> point cross one of the rectangles before
+    ``tol`` short of the point (brute force, exact)?"""
+    hidden = np.zeros(len(points), bool)
+    d = points - origin
+    dist = np.linalg.norm(d, axis=1)
+    for f in faces:
+        c = np.asarray(f, float)
+        e1, e2 = c[1] - c[0], c[3] - c[0]
+        n = np.cross(e1, e2)
+        denom = d @ n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t = ((c[0] - origin) @ n) / denom
+        x = origin + t[:, None] * d
+        a = (x - c[0]) @ e1 / (e1 @ e1)
+        b = (x - c[0]) @ e2 / (e2 @ e2)
+        inside = (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1) & (t > 0)
+        hidden |= inside & (t * dist < dist - tol)
+    return hidden
+
+
+def look_at(centre, target):
+    z = target - centre
+    z /= np.linalg.norm(z)
+    x = np.cross(z, [0, 0, 1.0])
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    R = np.stack([x, y, z])
+    return make_cam_from_world(R, -R @ centre)
+
+
+@pytest.fixture(scope="module")
+def line_map():
+    segs, faces = scene()
+    return LineMap.from_segments(segs, surfaces=mesh(faces)), faces
+
+
+def brute_visible(segments, faces, cam_from_world, step=0.01):
+    """Returns per segment (n,) bool samples and their (n, 3) positions: in front, in the image, not hidden."""
+    centre = -cam_from_world[:3, :3].T @ cam_from_world[:3, 3]
+    out = []
+    for s in segments:
+        n = max(2, int(np.linalg.norm(s[3:] - s[:3]) / step))
+        p = s[:3] + np.linspace(0, 1, n)[:, None] * (s[3:] - s[:3])
+        x = p @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u, v = CAMERA.fx * x[:, 0] / x[:, 2] + CAMERA.cx, CAMERA.fy * x[:, 1] / x[:, 2] + CAMERA.cy
+        ok = (
+            (x[:, 2] > 0.05)
+            & (u >= -0.5)
+            & (u <= CAMERA.width - 0.5)
+            & (v >= -0.5)
+            & (v <= CAMERA.height - 0.5)
+        )
+        dist = np.linalg.norm(p - centre, axis=1)
+        ok &= ~hits_before(centre, p, faces, 0.05 + 0.02 * dist)
+        out.append((ok, p))
+    return out
+
+
+def covered(parts, rows, k, p, radius=0.03):
+    """Returns (n,) bool: which points p of segment k lie within radius of one of its visible parts."""
+    mine = parts[rows == k]
+    if len(mine) == 0:
+        return np.zeros(len(p), bool)
+    a, d = mine[:, :3], mine[:, 3:] - mine[:, :3]
+    w = p[:, None] - a[None]
+    t = np.clip(np.einsum("pmk,mk->pm", w, d) / np.maximum(np.einsum("mk,mk->m", d, d), 1e-12), 0, 1)
+    return (np.linalg.norm(w - t[..., None] * d[None], axis=2) <= radius).any(axis=1)
+
+
+def test_visible_parts_match_brute_force(line_map, rng):
+    lm, faces = line_map
+    disagree, total, hidden_some = 0, 0, False
+    for _ in range(8):
+        centre = rng.uniform([0.0, -3, 0.3], [4.0, 3, 2.5])
+        cam = look_at(centre, np.array([10.0, 0, 1.2]) + rng.normal(0, 0.5, 3))
+        parts, rows = lm.visible_parts(CAMERA, cam)
+        assert parts.shape[1] == 6 and parts.dtype == np.float64 and rows.dtype == np.int64
+        for k, (ok, p) in enumerate(brute_visible(lm.segments, faces, cam)):
+            got = covered(parts, rows, k, p)
+            # samples near a visibility change may fall either way (samples every 3 px)
+            boundary = np.convolve(np.diff(ok.astype(int)) != 0, np.ones(25), "same") > 0
+            boundary = np.r_[boundary, False] | np.r_[False, boundary]
+            disagree += int((got != ok)[~boundary].sum())
+            total += len(ok)
+            hidden_some |= bool((~ok).any() and ok.any())
+    assert hidden_some  # the box does hide parts of the wall's lines
+    assert disagree <= 0.005 * total
+
+
+def test_segments_on_surfaces_are_not_self_occluded():
+    segs, faces = scene()
+    wall_only = LineMap.from_segments(segs, surfaces=mesh(faces[:1]))
+    cam = look_at(np.array([2.0, 4.0, 2.5]), np.array([10.0, 3.0, 1.5]))
+    parts, rows = wall_only.visible_parts(CAMERA, cam, index=np.arange(4))  # the wall's own outline
+    lengths = np.bincount(rows, np.linalg.norm(parts[:, 3:] - parts[:, :3], axis=1), minlength=4)
+    brute = brute_visible(segs[:4], [], cam)
+    for k, (ok, _) in enumerate(brute):
+        assert lengths[k] == pytest.approx(ok.mean() * np.linalg.norm(segs[k, 3:] - segs[k, :3]), abs=0.1)
+
+
+def test_without_surfaces_it_is_the_frustum(line_map):
+    lm, _ = line_map
+    bare = LineMap.from_segments(lm.segments)
+    assert bare.surfaces is None
+    cam = look_at(np.array([2.0, 0.0, 1.0]), np.array([10.0, 0, 1.2]))
+    parts, _ = bare.visible_parts(CAMERA, cam)
+    hidden_parts, _ = lm.visible_parts(CAMERA, cam)
+    length = np.linalg.norm(parts[:, 3:] - parts[:, :3], axis=1).sum()
+    assert length > np.linalg.norm(hidden_parts[:, 3:] - hidden_parts[:, :3], axis=1).sum() + 1.0
+    behind = look_at(np.array([12.0, 0, 1.0]), np.array([20.0, 0, 1.0]))
+    assert len(bare.visible_parts(CAMERA, behind)[0]) == 0
+    sub = bare.visible_parts(CAMERA, cam, index=np.array([0, 5]))[1]
+    assert set(sub.tolist()) <= {0, 5}
+
+
+def test_potentially_visible_never_misses(line_map, rng):
+    lm, faces = line_map
+    culled = 0
+    for _ in range(12):
+        lo = rng.uniform([2.0, -3, 0.2], [5.5, 2, 1.2])
+        hi = lo + rng.uniform(0.2, 1.0, 3)
+        pvs = lm.potentially_visible(lo, hi)
+        assert np.all(np.diff(pvs) > 0)
+        culled += len(lm) - len(pvs)
+        for centre in rng.uniform(lo, hi, (6, 3)):
+            for k, s in enumerate(lm.segments):
+                p = s[:3] + np.linspace(0, 1, 200)[:, None] * (s[3:] - s[:3])
+                seen = ~hits_before(centre, p, faces, 0.05 + 0.02 * np.linalg.norm(p - centre, axis=1))
+                if seen.any():
+                    assert k in pvs, (k, centre)
+    # from right behind the box, the wall's lines straight behind it are hidden from every point
+    pvs = lm.potentially_visible([4.0, -0.3, 0.3], [5.0, 0.3, 0.6])
+    assert len(pvs) < len(lm) and culled > 0
+
+
+def test_potentially_visible_bad_box_and_no_surfaces(line_map):
+    lm, _ = line_map
+    with pytest.raises(InvalidInputError):
+        lm.potentially_visible([1, 1, 1], [0, 0, 0])
+    bare = LineMap.from_segments(lm.segments)
+    np.testing.assert_array_equal(bare.potentially_visible([0, 0, 0], [1, 1, 1]), np.arange(len(lm)))
+
+
+def test_rectangles_cover_the_raster_exactly(rng):
+    image = rng.random((30, 40)) < 0.6
+    rects = raster_rectangles(image)
+    cover = np.zeros(image.shape, int)
+    for c0, c1, r0, r1 in rects:
+        cover[r0:r1, c0:c1] += 1
+    np.testing.assert_array_equal(cover, image.astype(int))
+
+
+def test_raster_mesh_is_a_plane_patch():
+    image = np.zeros((10, 20), np.uint8)
+    image[2:8, 3:15] = 255
+    basis = np.array([[1.0, 0, 0], [0, 1.0, 0]])
+    surfaces = raster_mesh(image, np.array([0.0, 0.0]), 0.1, (np.array([0, 0, 5.0]), basis), 0.1)
+    assert surfaces.area_m2() == pytest.approx(12 * 6 * 0.01)
+    assert np.allclose(surfaces.world_vertices()[:, 2], 5.0)
+    with pytest.raises(InvalidInputError):
+        make_surfaces(np.zeros((3, 3)), np.array([[0, 1, 5]]))
