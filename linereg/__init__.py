@@ -31,7 +31,7 @@ _LAZY = {
     "register": "linereg.pipeline",
     "localize": "linereg.localization",
     "localize_segments": "linereg.localization",
-    "Prior": "linereg.localization",
+    "Prior": "linereg.priors",
     "LineMap": "linereg.map.linemap",
 }
 

@@ -249,87 +249,98 @@ class RotationConfig:
     # spurious confirmation then leaves only wrong ones); each costs a translation screening
     max_unconfirmed: int = 8
     refit: bool = True  # re-fit each candidate's R to the member segments of its paired VDs, not the VDs
+    single_step_deg: float = 10.0  # one matched direction: the free angle about it in steps of this
 
 
 @dataclass(frozen=True)
-class MatchConfig:
-    """When is a 2D segment and a projected 3D segment a correspondence (shared by every stage)."""
+class ScoreConfig:
+    """The score of a pose (``score.py``): image line length the visible map explains, less what it predicts
+    in empty image areas."""
 
-    distance_px: float = 6.0  # both projected endpoints within this of the 2D segment's infinite line
-    min_overlap: float = 0.5  # paper: projection overlaps > 0.5 of the 2D segment's length
-    min_depth_m: float = 1e-3  # endpoints must lie in front of the camera
-
-
-@dataclass(frozen=True)
-class TranslationConfig:
-    """Translation and correspondences per rotation candidate by hypothesis testing."""
-
-    method: Literal["search", "ransac"] = "search"  # "ransac": the paper's random 3-pair RANSAC
-    ransac_iterations: int = 2000
-    stop_inlier_fraction: float = 0.7  # paper: stop at 70 % inliers
-    # a pair (2D i, 3D j) is a candidate when i's endpoints lie within this of the image line through i's
-    # midpoint and the vanishing point of j's direction under R (pixels: fair to short, noisy segments)
-    coplanar_px: float = 6.0
-    # "search": a pair read as a whole-segment correspondence gives one t; those vote in camera-centre cells
-    # of this fraction of the median depth (a pair's error grows with depth, ~3 % for 100 px at 2 px noise)
-    cell_fraction: float = 0.04
-    seed_min_length_px: float = 20.0  # "search": shorter 2D segments give too vague a hypothesis
-    num_verify: int = 32  # "search": at most this many of the fullest cells are scored with the inlier test,
-    verify_fraction: float = 0.3  # ... those with at least this fraction of the fullest cell's votes
-    # "search": on large maps only the likeliest whole 2D segments (both ends at a corner, then one, then
-    # longest) seed, up to this many hypotheses
-    max_hypotheses: int = 60_000
-    polish_rounds: int = 2  # "search": robust least squares on the coplanarity equations + re-match
-    distinct_fraction: float = 0.05  # runner-up: camera centre farther than this x scene size from best
-    seed: int = 0
-    # many rotation candidates (Manhattan scenes: 24): each is first screened by a "search" with this seed
-    # budget (4000 missed the true t on large maps) counting only the few fullest cells, unpolished;
-    # only the best ``finalists`` get the full search
-    screen_max_hypotheses: int = 40_000
-    screen_num_verify: int = 8
-    finalists: int = 6
-    finalist_fraction: float = 0.3  # ... and only those screened at >= this fraction of the best count
-    # the best distinct poses (within ``contest_fraction`` of the most inliers, at most ``contenders``; each
-    # candidate's runner-up too) are all refined; the best refined fit wins (``pipeline._contest``: 2D
-    # length the inliers explain minus ``unexplained_weight`` x the projected map length that falls where the
-    # image has no segment within ``empty_radius_fraction`` of its diagonal): a symmetric building seen from
-    # its far side explains as many segments, but it also predicts facade edges in the empty sky
-    contenders: int = 8
-    contest_fraction: float = 0.7
-    unexplained_weight: float = 1.0
+    # a projected map line covers an image segment where it runs within this of the segment's line (both
+    # ends of the shared stretch) ...
+    distance_px: float = 4.0
+    angle_deg: float = 4.0  # ... at an angle below this (LSD's angle on a 30 px segment is good to ~2 deg)
+    # where the image has no segment within this fraction of its diagonal it shows no line at all (sky,
+    # blank walls): map lines predicted there count against the pose
     empty_radius_fraction: float = 0.08
-    inlier_fraction: float = 0.04  # each refined inlier also counts for this fraction of the image diagonal
+    unexplained_weight: float = 1.0
+    min_depth_m: float = 0.05  # map points nearer than this to the camera plane are not scored
+
+
+@dataclass(frozen=True)
+class PointsConfig:
+    """Corners and free segment ends (``points.py``), the image and map points the search votes with."""
+
+    gap_px: float = 6.0  # an image segment's end this close to a crossing (+ gap_fraction of it) joins it
+    gap_fraction: float = 0.15  # ... a fraction of the segment's length (LSD shortens segments at corners)
+    min_angle_deg: float = 20.0  # lines closer to parallel than this make no corner
+    line_gap: float = 0.5  # 3D lines must pass within this fraction of the gap of each other to meet
+    corner_weight: float = 2.0  # a corner pins a camera ray better than a free end (two directions)
+
+
+@dataclass(frozen=True)
+class SearchConfig:
+    """The search over camera centres (``search.py``): rays from matched points vote in a voxel grid."""
+
+    voxels: int = 2_000_000  # the search region is cut into about this many cubic voxels for coarse votes
+    coarse_peaks: int = 8  # ... the best of each rotation are voted again on a finer grid:
+    fine_voxels: int = 16  # ... of this many voxels a side
+    fine_span: float = 3.0  # ... spanning this many coarse voxels each way
+    # an image point and a map point may correspond when both arms agree within this under the rotation
+    # (vanishing directions are good to a few degrees, and so is a candidate rotation)
+    arm_angle_deg: float = 8.0
+    # a map arm seen from farther than this x focal x its length / the image arm's length would look too
+    # short to make the image arm (a fragment may be shorter than its map line, not many times longer)
+    arm_length_ratio: float = 2.0
+    peaks: int = 16  # the fine peaks scoring best (at a tolerance spanning a fine voxel) are solved locally
+    # a rotation candidate from vanishing directions is off by up to about this: scoring and solving a peak
+    # start at a tolerance that covers it
+    rotation_slack_deg: float = 1.0
+    solve_rounds: int = 6  # local solve: match at a shrinking tolerance, re-solve the pose
+    # without a prior the camera centres searched are the map's box grown by each of these fractions of its
+    # largest extent on every side, each box voted on its own grid: fine near the map (photos of a mapped
+    # building are taken from outside it), coarse far out (a small mapped object seen from afar)
+    region_margins: tuple[float, ...] = (1.0, 2.5)
+
+
+@dataclass(frozen=True)
+class DecideConfig:
+    """When is the best pose an answer (``pipeline.decide``): clearly better than every distinct rival."""
+
+    # a pose clearly distinct from the best (rotation, or camera centre farther than distinct_fraction of the
+    # scene depth) scoring above (1 - margin) x best makes the answer ambiguous
+    margin: float = 0.15
+    distinct_angle_deg: float = 2.0
+    distinct_fraction: float = 0.05
+    # the best must explain at least this fraction of the image's line length: below it, chance alignments
+    # of a dense map explain as much
+    min_explained_fraction: float = 0.15
+    contenders: int = 4  # the best distinct poses of the search are refined before deciding
+    # an image segment is matched to the map segment covering most of it, if that covers more than this
+    # fraction of it (the paper's overlap test)
+    min_cover: float = 0.5
 
 
 @dataclass(frozen=True)
 class RefineConfig:
-    """GTSAM refinement: endpoint-to-line reprojection, robust kernel, reject and re-associate."""
+    """GTSAM refinement on fragments (``refine.py``): the matched stretch of each map line onto its image
+    line, robust kernel, re-associate at each refined pose."""
 
     kernel: Literal["huber", "cauchy", "tukey", "none"] = "huber"  # per scalar residual (gtsam Scalar scheme)
     kernel_px: float = 2.0
-    outlier_px: float = 5.0  # a match whose worst endpoint is farther than this is dropped
-    # ... or farther than outlier_sigmas robust sigmas (MAD) of the residuals, but never below min_outlier_px
-    outlier_sigmas: float = 3.0  # 0: always outlier_px
+    # re-association keeps covers within outlier_sigmas robust sigmas (MAD) of the residuals, between
+    # min_outlier_px and the score's distance_px: the test tightens as the pose converges
+    outlier_sigmas: float = 3.0
     min_outlier_px: float = 2.0
-    max_rounds: int = 5  # optimise -> reject -> re-associate rounds
+    start_factor: float = 2.5  # the first round covers at this many times the score's tolerance
+    min_cover_px: float = 5.0  # shorter covered stretches carry no direction: left out of the fit
+    max_rounds: int = 5  # optimise -> re-associate rounds
     max_iterations: int = 50  # Levenberg-Marquardt iterations per round
     relative_error_tol: float = 1e-5  # LM stops when the cost drops by less than this fraction
-    reassociate: bool = True  # re-match at the refined pose within min(match.distance_px, outlier threshold)
-    min_matches: int = 4  # fewer correspondences than this (3 is minimal for 6 DoF) is not refined
+    min_matches: int = 4  # fewer covered stretches than this (3 is minimal for 6 DoF) are not refined
     parallel_angle_deg: float = 2.0  # all matched 3D lines within this of one direction: degenerate
-    near_fraction: float = 0.05  # matched 3D segments are cut at this fraction of the mean depth
-    min_depth_m: float = 1e-3  # endpoints nearer than this (or behind the camera) are clamped to it
-
-
-@dataclass(frozen=True)
-class Ransac6Config:
-    """The paper's baseline: RANSAC over random 6-line correspondences solved by DLT-Lines."""
-
-    max_iterations: int = 2000  # paper-faithful budget; it rarely finds a pose among many lines
-    stop_inlier_fraction: float = 0.7  # paper: stop at 70 % of the 2D segments as inliers
-    # pretest: a hypothesis must explain this many of its own 6 sampled pairs before the full (N, M) test
-    min_sample_inliers: int = 4
-    seed: int = 0
+    min_depth_m: float = 1e-3  # points nearer than this (or behind the camera) are clamped to it
 
 
 @dataclass(frozen=True)
@@ -358,19 +369,19 @@ class LineDetectConfig:
 
 @dataclass(frozen=True)
 class RegisterConfig:
-    """Everything ``register`` needs; ``method="ransac6"`` runs the paper's baseline instead."""
+    """Everything ``register`` needs, one section per stage."""
 
-    method: Literal["vp", "ransac6"] = "vp"
     min_lines2d: int = 6
     min_lines3d: int = 6
-    min_inliers: int = 6  # fewer matches than this is not a pose
+    min_inliers: int = 6  # fewer matched image segments than this is not a pose
     vanishing: VanishingConfig = field(default_factory=VanishingConfig)
     parallel: ParallelConfig = field(default_factory=ParallelConfig)
     rotation: RotationConfig = field(default_factory=RotationConfig)
-    match: MatchConfig = field(default_factory=MatchConfig)
-    translation: TranslationConfig = field(default_factory=TranslationConfig)
+    score: ScoreConfig = field(default_factory=ScoreConfig)
+    points: PointsConfig = field(default_factory=PointsConfig)
+    search: SearchConfig = field(default_factory=SearchConfig)
     refine: RefineConfig = field(default_factory=RefineConfig)
-    ransac6: Ransac6Config = field(default_factory=Ransac6Config)
+    decide: DecideConfig = field(default_factory=DecideConfig)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RegisterConfig:

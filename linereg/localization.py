@@ -1,55 +1,25 @@
-"""``localize``: pixels and a line map in, a Registration out (2D lines, visibility culling, register)."""
+"""``localize``: pixels and a line map in, a Registration out (2D lines, the map's view, ``register``)."""
 
 from __future__ import annotations
 
 import dataclasses
-from dataclasses import dataclass
 
 import numpy as np
 
 from .camera import Camera
 from .config import LineDetectConfig, RegisterConfig
 from .directions import subset_clusters
-from .errors import InvalidInputError
-from .geometry import camera_center, segment_lengths
+from .geometry import segment_lengths
 from .lines2d import detect
 from .map.linemap import LineMap
-from .pipeline import register_undistorted
+from .pipeline import MapView, register_undistorted
+from .points import map_gap_m, map_points
+from .priors import Prior
 from .registration import Registration, check_segments
+from .search import map_signatures
 from .timing import StageTimer
 
-
-@dataclass(frozen=True)
-class Prior:
-    """What is known of the pose beforehand: a position within ``radius_m``, or a whole pose with sigmas.
-
-    position: (3,) world metres; cam_from_world: (4, 4). With a pose, the position is its camera centre and
-    the radius ``3 * sigma_pos_m``; only map segments near the position are searched.
-    """
-
-    position: np.ndarray | None = None
-    radius_m: float | None = None
-    cam_from_world: np.ndarray | None = None
-    sigma_rot_deg: float | None = None
-    sigma_pos_m: float | None = None
-
-    def __post_init__(self) -> None:
-        if self.cam_from_world is not None:
-            T = np.asarray(self.cam_from_world, dtype=np.float64)
-            if T.shape != (4, 4) or not np.isfinite(T).all():
-                raise InvalidInputError("prior cam_from_world must be a finite (4, 4) matrix")
-            object.__setattr__(self, "cam_from_world", T)
-            if self.position is None:
-                object.__setattr__(self, "position", camera_center(T))
-            if self.radius_m is None and self.sigma_pos_m is not None:
-                object.__setattr__(self, "radius_m", 3.0 * float(self.sigma_pos_m))
-        if self.position is not None:
-            p = np.asarray(self.position, dtype=np.float64).reshape(-1)
-            if p.shape != (3,) or not np.isfinite(p).all():
-                raise InvalidInputError("prior position must be 3 finite numbers")
-            object.__setattr__(self, "position", p)
-        if self.radius_m is not None and not (np.isfinite(self.radius_m) and self.radius_m > 0):
-            raise InvalidInputError(f"prior radius_m must be positive, got {self.radius_m}")
+__all__ = ["Prior", "localize", "localize_segments", "map_view"]
 
 
 def localize(
@@ -84,6 +54,24 @@ def localize_segments(
     return _localize_undistorted(lines2d, line_map, camera.undistorted(), config, prior, StageTimer())
 
 
+def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig) -> MapView:
+    """Returns the MapView of the map's segments ``index`` (None: all): clusters restricted to them, their
+    corner points and signatures (those of the whole map are computed once and kept by the map)."""
+    if index is None:
+        cached = line_map.cache.get("view")
+        if cached is None or cached[0] != config.points:
+            segments = line_map.segments
+            points = map_points(segments, config.points, map_gap_m(segments, config.points))
+            signatures = map_signatures(points, line_map.clusters.labels, line_map.clusters.directions)
+            cached = (config.points, MapView(segments, line_map.clusters, points, signatures))
+            line_map.cache["view"] = cached
+        return cached[1]
+    segments = line_map.segments[index]
+    clusters = subset_clusters(line_map.clusters, index, segment_lengths(segments))
+    points = map_points(segments, config.points, map_gap_m(line_map.segments, config.points))
+    return MapView(segments, clusters, points, map_signatures(points, clusters.labels, clusters.directions))
+
+
 def _localize_undistorted(
     lines2d: np.ndarray,
     line_map: LineMap,
@@ -96,15 +84,30 @@ def _localize_undistorted(
     if len(lines2d) < config.min_lines2d:
         reason = f"only {len(lines2d)} line segments in the image; at least {config.min_lines2d} are needed"
         return Registration(success=False, reason=reason, timings=timer.finish())
+    if prior is None and line_map.metadata.get("down") is not None:
+        pass  # the map's down only matters with a gravity prior
+    elif prior is not None and prior.world_down is None and line_map.metadata.get("down") is not None:
+        prior = dataclasses.replace(prior, world_down=np.asarray(line_map.metadata["down"], dtype=np.float64))
     with timer("culling"):
-        position = None if prior is None else prior.position
-        radius = None if prior is None else prior.radius_m
-        visible = line_map.visible(camera, None, prior_position=position, radius_m=radius)
-        lines3d = line_map.segments[visible]
-        clusters = subset_clusters(line_map.clusters, visible, segment_lengths(lines3d))
-    if len(lines3d) < config.min_lines3d:
-        reason = f"only {len(lines3d)} map segments near the prior; at least {config.min_lines3d} are needed"
+        index = None
+        if prior is not None and prior.position is not None and prior.radius_m is not None:
+            index = line_map.segments_near(prior.position, prior.radius_m + _reach(line_map, prior))
+        view = map_view(line_map, index, config)
+    if len(view.segments) < config.min_lines3d:
+        reason = (
+            f"only {len(view.segments)} map segments near the prior; at least {config.min_lines3d} are needed"
+        )
         return Registration(success=False, reason=reason, timings=timer.finish())
-    result = register_undistorted(lines2d, lines3d, clusters, camera, config, timer)
-    matches = np.c_[result.matches[:, 0], visible[result.matches[:, 1]]].astype(np.int64)
+    result = register_undistorted(lines2d, view, camera, config, timer, prior)
+    if index is None:
+        return result
+    matches = np.c_[result.matches[:, 0], index[result.matches[:, 1]]].astype(np.int64)
     return dataclasses.replace(result, matches=matches)
+
+
+def _reach(line_map: LineMap, prior: Prior) -> float:
+    """Returns how far beyond the prior's ball map segments may still be seen: the map's diagonal, capped at
+    ten times the radius (a camera sees far, but a prior is given to bound the work)."""
+    bounds = np.asarray(line_map.metadata["bounds"], dtype=np.float64)
+    diagonal = float(np.linalg.norm(bounds[1] - bounds[0]))
+    return min(diagonal, 10.0 * float(prior.radius_m or 0.0))

@@ -6,8 +6,8 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
-from .matching import project_segments
 from .registration import Registration
+from .score import project_segments
 
 RED, GREEN, GREY = (40, 40, 230), (60, 220, 60), (170, 170, 170)  # BGR
 WHITE, BLACK = (255, 255, 255), (0, 0, 0)
@@ -52,7 +52,7 @@ def overlay_caption(registration: Registration) -> str:
     r = registration
     total_s = r.timings.get("total")
     time = f", {1e3 * total_s:.0f} ms" if total_s else ""
-    numbers = f"{r.num_inliers} inliers, ambiguity {r.ambiguity:.2f}{time}"
+    numbers = f"{r.num_inliers} inliers, {100 * r.explained_fraction:.0f} % explained, ambiguity {r.ambiguity:.2f}{time}"
     if r.success:
         return f"localized | {numbers}"
     return f"not localized | {numbers} | {r.reason or 'no reason given'}"

@@ -1,38 +1,51 @@
-"""``register``: the paper's section III from segments to a refined pose — a composer, no math here."""
+"""``register``: the paper's section III from segments to a refined pose, and the decision — a composer.
+
+III-B  vanishing directions (image) and parallel clusters (map) -> rotation candidates (eq. 2, Algorithm 1);
+III-C  for all candidates at once, camera centres from the rays of matched corners (``search.py``, which
+       replaces the paper's random 3-pair hypotheses: every point correspondence votes), each best voxel
+       solved locally and scored without correspondences (``score.py``);
+III-D  GTSAM refinement of the best distinct poses on matched fragments (eq. "costs", ``refine.py``);
+then   the decision: a pose is an answer only when no distinct pose comes close (``decide``).
+"""
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
 from .camera import Camera
-from .config import RegisterConfig, TranslationConfig
+from .config import DecideConfig, RegisterConfig
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .evidence import empty_areas, unexplained_length
-from .geometry import make_cam_from_world, rotation_error_deg, segment_lengths
+from .geometry import camera_center, make_cam_from_world, rotation_error_deg
 from .parallel import parallel_clusters
+from .points import Points, image_points, map_gap_m, map_points
+from .priors import Prior, admits, search_region
 from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
-from .rotation import RotationCandidate, refine_candidates, rotation_candidates
+from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
+from .score import image_lines
+from .search import Found, MapSignatures, map_signatures, search
 from .timing import StageTimer
-from .translation import TranslationHypothesis, estimate_translation, scene_size, screen_translation
 from .vanishing import vanishing_directions
 
 log = logging.getLogger(__name__)
 
 
 def register(
-    lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: RegisterConfig | None = None
+    lines2d: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    config: RegisterConfig | None = None,
+    prior: Prior | None = None,
 ) -> Registration:
     """Returns the Registration of an image's 2D segments against a map's 3D segments.
 
     lines2d: (N, 4) float64 pixels as measured in the image (distorted if ``camera.dist`` is set).
     lines3d: (M, 6) float64 world metres. No pose found -> ``success=False`` with a reason; malformed
-    input -> ``InvalidInputError`` naming the argument.
+    input -> ``InvalidInputError`` naming the argument. prior: what is known of the pose (``Prior``).
     """
     config = config or RegisterConfig()
     if not isinstance(camera, Camera):
@@ -42,200 +55,176 @@ def register(
     if camera.has_distortion:  # the pipeline works on undistorted pixels of the same K
         lines2d = camera.undistort_points(lines2d.reshape(-1, 2)).reshape(-1, 4)
         camera = camera.undistorted()
-    if config.method == "ransac6":
-        from .baseline import register_ransac6
-
-        return register_ransac6(lines2d, lines3d, camera, config)
     timer = StageTimer()
     with timer("parallel_3d"):
         clusters = parallel_clusters(lines3d, config.parallel)
-    return register_undistorted(lines2d, lines3d, clusters, camera, config, timer)
-
-
-def register_undistorted(
-    lines2d: np.ndarray,
-    lines3d: np.ndarray,
-    clusters3d: DirectionClusters,
-    camera: Camera,
-    config: RegisterConfig,
-    timer: StageTimer | None = None,
-) -> Registration:
-    """Returns the Registration of validated, undistorted segments with precomputed 3D parallel clusters."""
-    timer = timer or StageTimer()
-    # III-B: vanishing directions of the image (Rother 2002, multiple RANSAC on interpretation planes)
-    with timer("vanishing"):
-        vds = vanishing_directions(lines2d, camera, config.vanishing)
-    # III-B, eq. (2): rotation candidates from VD <-> parallel-cluster pairings and signs (Algorithm 1)
-    with timer("rotation"):
-        candidates = rotation_candidates(vds, clusters3d, config.rotation)
-        if config.rotation.refit:
-            candidates = refine_candidates(candidates, vds, clusters3d, lines2d, camera)
-    if not candidates:
-        reason = f"no rotation candidate ({len(vds)} vanishing directions, {len(clusters3d)} 3D clusters)"
-        return Registration(success=False, reason=reason, timings=timer.finish())
-    # III-C, eq. (coplanar): translation and correspondences per candidate (Algorithm 2); with many candidates
-    # (Manhattan scenes), a cheap screening first and the full search for the best few
-    with timer("translation"):
-        poses = _translations(lines2d, lines3d, camera, candidates, clusters3d, config)
-    if poses[0].hypothesis.num_inliers < config.min_inliers:
-        reason = (
-            f"best hypothesis has {poses[0].hypothesis.num_inliers} inliers, fewer than {config.min_inliers}"
-        )
-        return Registration(success=False, reason=reason, timings=timer.finish())
-    # III-D, eq. (costs): GTSAM refinement of endpoint-to-line distances, reject outliers, re-associate;
-    # the best few distinct poses are all refined and the best refined fit wins
-    with timer("refine"):
-        winner, refined = _contest(lines2d, lines3d, camera, poses, config)
-    num_inliers = len(refined.matches)
-    if num_inliers < config.min_inliers:
-        reason = f"refinement kept {num_inliers} inliers, fewer than {config.min_inliers}"
-        return Registration(success=False, reason=reason, timings=timer.finish())
-    far = config.translation.distinct_fraction * scene_size(lines3d)
-    runner_up = max(
-        [winner.hypothesis.runner_up_inliers]
-        + [p.hypothesis.num_inliers for p in poses if _differs(p, winner, far)]
-    )
-    return Registration(
-        success=True,
-        cam_from_world=refined.cam_from_world,
-        matches=refined.matches,
-        num_inliers=num_inliers,
-        covariance=refined.covariance,
-        runner_up_inliers=int(runner_up),
-        rms_px=refined.rms_px,
-        inliers_before_refinement=winner.hypothesis.num_inliers,
-        timings=timer.finish(),
+    with timer("map_points"):
+        points = map_points(lines3d, config.points, map_gap_m(lines3d, config.points))
+        signatures = map_signatures(points, clusters.labels, clusters.directions)
+    return register_undistorted(
+        lines2d, MapView(lines3d, clusters, points, signatures), camera, config, timer, prior
     )
 
 
 @dataclass(frozen=True)
-class _Pose:
-    """A rotation candidate's R with its translation hypothesis."""
+class MapView:
+    """The part of a map a query sees: (M, 6) segments, their clusters, corner points and signatures, and
+    (M,) bool ``visible`` (None: no surfaces to hide anything)."""
 
-    R: np.ndarray
-    hypothesis: TranslationHypothesis
-
-    @property
-    def centre(self) -> np.ndarray:
-        return -self.R.T @ self.hypothesis.t
-
-    @property
-    def pose(self) -> np.ndarray:
-        """(4, 4) cam_from_world."""
-        return make_cam_from_world(self.R, self.hypothesis.t)
+    segments: np.ndarray
+    clusters: DirectionClusters
+    points: Points
+    signatures: MapSignatures
+    visible: np.ndarray | None = None
 
 
-def _translations(
+def register_undistorted(
     lines2d: np.ndarray,
-    lines3d: np.ndarray,
+    view: MapView,
     camera: Camera,
-    candidates: list[RotationCandidate],
-    clusters3d: DirectionClusters,
     config: RegisterConfig,
-) -> list[_Pose]:
-    """Returns a translation hypothesis per rotation candidate, most inliers first.
-
-    With more candidates than ``translation.finalists`` ("search" only), all are screened by a cheap
-    search (``screen_translation``) and only the finalists get the full one; the others keep their
-    screening count (no pose: it only serves as a runner-up count).
-    """
-    tc = config.translation
-
-    def estimate(R: np.ndarray) -> _Pose:
-        return _Pose(R, estimate_translation(lines2d, lines3d, camera, R, clusters3d, tc, config.match))
-
-    Rs = [c.R for c in candidates]
-    if tc.method == "search" and len(Rs) > tc.finalists:
-        args = (lines2d, lines3d, camera)
-        screened = [screen_translation(*args, R, clusters3d, tc, config.match) for R in Rs]
-        order = np.argsort(np.negative(screened), kind="stable")
-        # a candidate screened far below the best (a wrong rotation gets ~5-10 % of the true count) is not
-        # worth a full search; near-ties (symmetric buildings) all are
-        close = np.asarray(screened)[order] >= tc.finalist_fraction * max(screened)
-        count = int(min(tc.finalists, max(1, close.sum())))
-        poses = [estimate(Rs[k]) for k in order[:count]]
-        # the others keep their screening count: enough for the runner-up, never refined
-        poses += [_Pose(Rs[k], _screened_only(screened[k])) for k in order[count:]]
-    else:
-        poses = [estimate(R) for R in Rs]
-    return sorted(poses, key=lambda p: -p.hypothesis.num_inliers)
-
-
-def _screened_only(count: int) -> TranslationHypothesis:
-    """Returns a placeholder hypothesis carrying only a screening inlier count."""
-    return TranslationHypothesis(np.full(3, np.nan), np.zeros((0, 2), dtype=np.int64), count, 0)
-
-
-def _contest(
-    lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, poses: list[_Pose], config: RegisterConfig
-) -> tuple[_Pose, Refinement]:
-    """Returns (winner, its Refinement) among the best distinct poses, all refined ("search" only).
-
-    The winner has the best fit score: the 2D length (px) its inliers explain, plus ``inlier_fraction`` of
-    the image diagonal per inlier, minus ``unexplained_weight`` x the length of map lines it projects where
-    the image shows no segment (``evidence``). Length: fragments and clutter match by accident, long edges
-    rarely; the per-inlier part: an impostor turned by 180 degrees can match the long ledges and little
-    else. A mirror pose (the far side of a symmetric block) or a shift along a repetitive facade can
-    explain as much as the truth, but it also predicts facade edges in the empty sky or ground. Demo photos
-    (seeds 0-2, the 28 with the truth among the contenders): this score picks the truth in 27, the
-    explained length per pixel of RMS residual (the previous rule) in 21; synthetic building scenes
-    (seeds 0-39, the 24 with the truth): 23 against 23.
-    "ransac" keeps the paper's rule: most inliers wins (only the best is refined).
-    """
-    tc = config.translation
-    lengths = segment_lengths(lines2d)
-    diagonal = float(np.hypot(camera.width, camera.height))
-    empty = empty_areas(lines2d, camera, tc.empty_radius_fraction * diagonal)
-    per_inlier = tc.inlier_fraction * diagonal
-
-    def score(pose: np.ndarray, matches: np.ndarray) -> float:
-        explained = float(lengths[matches[:, 0]].sum()) + per_inlier * len(matches)
-        return explained - tc.unexplained_weight * unexplained_length(lines3d, camera, pose, empty)
-
-    contenders = poses[:1]
-    if tc.method == "search":
-        # no fully searched pose (every finalist found nothing): the best, as the paper's rule has it
-        contenders = (
-            _contenders(poses, tc, lines3d, lambda p: score(p.pose, p.hypothesis.matches)) or contenders
+    timer: StageTimer | None = None,
+    prior: Prior | None = None,
+) -> Registration:
+    """Returns the Registration of validated, undistorted segments against a prepared map view."""
+    timer = timer or StageTimer()
+    # III-B: vanishing directions of the image (Rother 2002, multiple RANSAC on interpretation planes)
+    with timer("vanishing"):
+        vds = vanishing_directions(lines2d, camera, config.vanishing)
+    # III-B, eq. (2): rotation candidates from VD <-> parallel-cluster pairings and signs (Algorithm 1); one
+    # matched direction leaves an angle about it, searched in steps; a prior keeps those it admits
+    with timer("rotation"):
+        candidates = rotation_candidates(vds, view.clusters, config.rotation)
+        if config.rotation.refit:
+            candidates = refine_candidates(candidates, vds, view.clusters, lines2d, camera)
+        rotations = [c.R for c in candidates]
+        if not rotations:
+            rotations = single_direction_candidates(vds, view.clusters, config.rotation)
+        if prior is not None and prior.cam_from_world is not None:
+            rotations.append(prior.cam_from_world[:3, :3])
+        rotations = [R for R in rotations if admits(prior, R)]
+    if not rotations:
+        reason = f"no rotation candidate ({len(vds)} vanishing directions, {len(view.clusters)} 3D clusters)"
+        if prior is not None and (prior.gravity is not None or prior.cam_from_world is not None):
+            reason += " agrees with the prior"
+        return Registration(success=False, reason=reason, timings=timer.finish())
+    # III-C: camera centres from the rays of matched corners, the best solved locally and scored (near the
+    # map on a fine grid, farther out on a coarser one: a photo of a small mapped object is taken from afar)
+    with timer("search"):
+        image = image_lines(lines2d, camera, config.score)
+        regions: list[tuple[np.ndarray, np.ndarray]] = []  # the map's margins cut to a prior's ball: the same box twice is searched once
+        for margin in config.search.region_margins:
+            lo, hi = search_region(view.segments, prior, margin)
+            if not any(np.array_equal(lo, a) and np.array_equal(hi, b) for a, b in regions):
+                regions.append((lo, hi))
+        found, _ = search(
+            image,
+            image_points(lines2d, config.points),
+            view.segments,
+            view.points,
+            view.signatures,
+            camera,
+            rotations,
+            regions,
+            config.search,
+            config.score,
+            view.visible,
         )
-    results = []
-    for p in contenders:
-        refined = refine_pose(
-            lines2d, lines3d, camera, p.pose, p.hypothesis.matches, config.refine, config.match
+    if not found:
+        return Registration(success=False, reason="no pose explains any image line", timings=timer.finish())
+    # III-D: GTSAM refinement of the best distinct poses on their matched fragments
+    with timer("refine"):
+        refined = [
+            refine_pose(
+                image, view.segments, camera, f.cam_from_world, config.refine, config.score, view.visible
+            )
+            for f in _distinct(found, view.segments, config.decide)[: config.decide.contenders]
+        ]
+    return decide(refined, found, view.segments, image.total_length, config, timer)
+
+
+def decide(
+    refined: list[Refinement],
+    found: list[Found],
+    lines3d: np.ndarray,
+    image_length: float,
+    config: RegisterConfig,
+    timer: StageTimer,
+) -> Registration:
+    """Returns the Registration of the best refined pose: ``success`` only when it explains enough of the
+    image with enough matches and every distinct pose scores below ``(1 - margin)`` of it."""
+    dc = config.decide
+    refined = sorted(refined, key=lambda r: -r.score.value)
+    best = refined[0]
+    rivals = [(r.cam_from_world, r.score.value) for r in refined[1:]]
+    rivals += [(f.cam_from_world, f.score.value) for f in found]
+    rivals = [(T, s) for T, s in rivals if _differs(T, best.cam_from_world, lines3d, dc)]
+    alternatives = _distinct_poses(rivals, lines3d, dc)[:8]
+    runner_up = max((s for _, s in alternatives), default=0.0)
+    matches = best.score.matches(dc.min_cover)
+    explained = best.score.explained_length / max(image_length, 1e-9)
+    reason = ""
+    if best.score.value <= 0 or explained < dc.min_explained_fraction:
+        reason = f"the best pose explains {100 * explained:.0f} % of the image's lines (< {100 * dc.min_explained_fraction:.0f} %)"
+    elif len(matches) < config.min_inliers:
+        reason = f"the best pose matches {len(matches)} image segments, fewer than {config.min_inliers}"
+    elif runner_up >= (1.0 - dc.margin) * best.score.value:
+        T = next(T for T, s in alternatives if s == runner_up)
+        turn = rotation_error_deg(T[:3, :3], best.cam_from_world[:3, :3])
+        shift = float(np.linalg.norm(camera_center(T) - camera_center(best.cam_from_world)))
+        reason = (
+            f"ambiguous: a distinct pose ({turn:.0f} deg, {shift:.1f} m away) scores "
+            f"{100 * runner_up / best.score.value:.0f} % of the best"
         )
-        results.append((score(refined.cam_from_world, refined.matches), refined, p))
-    k = int(np.argmax([r[0] for r in results]))
-    return results[k][2], results[k][1]
+    return Registration(
+        success=not reason,
+        reason=reason,
+        cam_from_world=best.cam_from_world,
+        matches=matches,
+        num_inliers=len(matches),
+        covariance=best.covariance,
+        rms_px=best.rms_px,
+        score=float(best.score.value),
+        explained_fraction=float(explained),
+        runner_up_score=float(max(runner_up, 0.0)),
+        alternatives=np.array([T for T, _ in alternatives]).reshape(-1, 4, 4),
+        alternative_scores=np.array([s for _, s in alternatives], dtype=np.float64),
+        timings=timer.finish(),
+    )
 
 
-def _contenders(
-    poses: list[_Pose], tc: TranslationConfig, lines3d: np.ndarray, score: Callable[[_Pose], float]
-) -> list[_Pose]:
-    """Returns the distinct poses worth refining, best ``score`` first, at most ``tc.contenders``: fully
-    searched ones and their runner-ups within ``tc.contest_fraction`` of the most inliers.
-
-    Runner-ups count: at the true rotation of a repetitive facade, the truth is sometimes second by a few
-    inliers to a shift along the building (demo photos: 50 against 53). Ranking by the fit score (unrefined)
-    rather than by inliers matters on symmetric sites: a dozen poses count within 10 % of the best.
-    """
-    full = [p for p in poses if len(p.hypothesis.matches)]  # not a screening count only
-    second = [
-        _Pose(p.R, TranslationHypothesis(h.runner_up_t, h.runner_up_matches, len(h.runner_up_matches), 0))
-        for p in full
-        if len((h := p.hypothesis).runner_up_matches) and np.isfinite(h.runner_up_t).all()
-    ]
-    most = max((p.hypothesis.num_inliers for p in full + second), default=0)
-    near = [p for p in full + second if p.hypothesis.num_inliers >= tc.contest_fraction * most]
-    far = tc.distinct_fraction * scene_size(lines3d)
-    contenders: list[_Pose] = []
-    for p in sorted(near, key=score, reverse=True):
-        if len(contenders) == tc.contenders:
-            break
-        if all(_differs(p, q, far) for q in contenders):
-            contenders.append(p)
-    return contenders
+def _distinct(found: list[Found], lines3d: np.ndarray, dc: DecideConfig) -> list[Found]:
+    """Returns the found poses that differ from every better one, best first."""
+    kept: list[Found] = []
+    for f in found:
+        if all(_differs(f.cam_from_world, k.cam_from_world, lines3d, dc) for k in kept):
+            kept.append(f)
+    return kept
 
 
-def _differs(a: _Pose, b: _Pose, far_m: float, angle_deg: float = 2.0) -> bool:
-    """Returns True if two poses are distinct hypotheses: rotations or camera centres clearly apart."""
-    return rotation_error_deg(a.R, b.R) > angle_deg or float(np.linalg.norm(a.centre - b.centre)) > far_m
+def _distinct_poses(
+    poses: list[tuple[np.ndarray, float]], lines3d: np.ndarray, dc: DecideConfig
+) -> list[tuple[np.ndarray, float]]:
+    """Returns (pose, score) pairs that differ from every better one, best first."""
+    kept: list[tuple[np.ndarray, float]] = []
+    for T, s in sorted(poses, key=lambda p: -p[1]):
+        if all(_differs(T, K, lines3d, dc) for K, _ in kept):
+            kept.append((T, s))
+    return kept
+
+
+def _differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig) -> bool:
+    """Returns True if two cam_from_world poses are distinct answers: rotations more than
+    ``distinct_angle_deg`` apart, or camera centres farther apart than ``distinct_fraction`` of the median
+    depth of the map seen from ``b``."""
+    if rotation_error_deg(a[:3, :3], b[:3, :3]) > dc.distinct_angle_deg:
+        return True
+    depth = lines3d.reshape(-1, 3) @ b[2, :3] + b[2, 3]
+    depth = depth[depth > 0]
+    scale = float(np.median(depth)) if len(depth) else 1.0
+    return float(np.linalg.norm(camera_center(a) - camera_center(b))) > dc.distinct_fraction * scale
+
+
+def pose_of(R: np.ndarray, centre: np.ndarray) -> np.ndarray:
+    """Returns the (4, 4) cam_from_world of a world -> camera rotation and a (3,) camera centre."""
+    return make_cam_from_world(R, -R @ centre)

@@ -1,11 +1,16 @@
-"""Pose refinement (paper section III-D): GTSAM Levenberg-Marquardt on endpoint-to-line distances,
-then reject outliers and re-associate at the refined pose, until the match set is stable.
+"""Pose refinement (paper section III-D) on fragments: GTSAM Levenberg-Marquardt on the distances of the
+matched stretch of each map line to its image segment's infinite line, re-associating at each refined pose.
 
-One ``CustomFactor`` (``line_factor``) holds every correspondence of the image; a robust kernel with gtsam's
-``Scalar`` reweight scheme weights each endpoint residual on its own (``Block`` would weight the whole
-image by the norm of all its residuals at once). The noise model has sigma = 1 px, so ``kernel_px`` is in
-pixels; the covariance is rescaled by the a-posteriori residual variance. The outlier threshold tightens
-from ``outlier_px`` to 3 robust sigmas of the residuals as the pose converges.
+The score (``score.py``) says which image segment each projected map segment covers, and over which stretch.
+The two ends of that stretch, carried back onto the map line, are the points whose projections must lie
+on the image line (eq. "costs"): only the part of a map segment that is seen and matched pulls, not its
+far ends, which may be hidden or cut at the image border, and three fragments along one edge each pull
+where they are. Each round re-scores at the refined pose with a tolerance of a few robust sigmas of the
+residuals, until the covering pairs no longer change.
+
+One ``CustomFactor`` (``line_factor``) holds every point of the image; a robust kernel with gtsam's
+``Scalar`` reweight scheme weights each residual on its own. The noise model has sigma = 1 px, so
+``kernel_px`` is in pixels; the covariance is rescaled by the a-posteriori residual variance.
 """
 
 from __future__ import annotations
@@ -18,11 +23,11 @@ import gtsam
 import numpy as np
 
 from .camera import Camera
-from .config import MatchConfig, RefineConfig
+from .config import RefineConfig, ScoreConfig
 from .errors import InvalidInputError
-from .geometry import invert, line_coefficients, segment_directions
+from .geometry import camera_center, invert, line_coefficients, segment_directions
 from .line_factor import LineProjection, line_factor
-from .matching import match_segments
+from .score import ImageLines, Score, score_pose
 
 log = logging.getLogger(__name__)
 
@@ -36,137 +41,155 @@ _KERNELS: dict[str, Any] = {
 
 @dataclass(frozen=True)
 class Refinement:
-    """A refined pose and the correspondences it explains.
+    """A refined pose and its score.
 
     cam_from_world: (4, 4) float64, ``x_cam = R x_world + t``.
-    matches: (K, 2) int64 ``(i2d, j3d)``, each within the last outlier threshold (<= ``outlier_px``) at
-        the refined pose; the input matches when the refinement was degenerate.
+    score: the Score at the refined pose (the score's own tolerance).
     covariance: (6, 6) float64 of gtsam's tangent ``xi = (omega rad, v m)`` of ``world_T_cam * Exp(xi)``,
         i.e. rotation and translation perturbations in the CAMERA (body) frame, (rotation, translation)
-        order, scaled by the residuals' own variance (so it reflects the actual pixel noise); NaN when
-        the refinement was degenerate.
-    rms_px: root mean square endpoint-to-line distance of ``matches`` at the refined pose.
-    rounds: optimise -> reject -> re-associate rounds run.
+        order, scaled by the residuals' own variance; NaN when the refinement was degenerate.
+    rms_px: root mean square distance of the fitted points to their image lines at the refined pose.
+    rounds: optimise -> re-associate rounds run.
     """
 
     cam_from_world: np.ndarray
-    matches: np.ndarray
+    score: Score
     covariance: np.ndarray
     rms_px: float
     rounds: int
 
 
 def refine_pose(
-    lines2d: np.ndarray,
+    image: ImageLines,
     lines3d: np.ndarray,
     camera: Camera,
     cam_from_world: np.ndarray,
-    matches: np.ndarray,
     config: RefineConfig,
-    match: MatchConfig,
+    score_config: ScoreConfig,
+    visible: np.ndarray | None = None,
 ) -> Refinement:
-    """Returns the Refinement of an initial pose by line reprojection (eq. "costs"), outliers removed.
+    """Returns the Refinement of a pose by line reprojection of matched fragments (eq. "costs").
 
-    lines2d: (N, 4) undistorted pixels; lines3d: (M, 6) world; cam_from_world: (4, 4) initial pose;
-    matches: (K, 2) int64 ``(i2d, j3d)`` initial correspondences. Degenerate input (fewer than
-    ``config.min_matches`` matches, all 3D lines parallel, singular system) returns the input pose with
-    NaN covariance, never raises (an unknown ``config.kernel`` raises InvalidInputError).
+    image: the image side of the score; lines3d: (M, 6) world; cam_from_world: (4, 4) initial pose;
+    visible: (M,) bool of the segments taking part (None: all). Degenerate input (fewer than
+    ``config.min_matches`` stretches, all map lines parallel, a singular system) returns the input pose
+    with NaN covariance, never raises (an unknown ``config.kernel`` raises InvalidInputError).
     """
     if config.kernel not in (*_KERNELS, "none"):
         raise InvalidInputError(
             f"refine.kernel must be one of {', '.join(_KERNELS)}, none; got {config.kernel!r}"
         )
-    matches = np.asarray(matches, dtype=np.int64).reshape(-1, 2)
-    coeffs = line_coefficients(lines2d)  # (N, 3): once, every round indexes it
-    current, pose, rounds, problem = matches, cam_from_world, 0, None
+    coeffs = line_coefficients(image.segments)
+    pose, rounds, problem, previous = cam_from_world, 0, None, None
+    tolerance = config.start_factor * score_config.distance_px  # the start pose is only roughly right
     while rounds < config.max_rounds:
-        problem, current = _problem(coeffs, lines3d, camera, current, pose, config)
+        scored = score_pose(
+            image, lines3d, camera, pose, replace(score_config, distance_px=tolerance), visible
+        )
+        pairs, stretches = fragments(image, lines3d, camera, pose, scored, config)
+        if previous is not None and _same(pairs, previous):
+            break
+        problem = _problem(coeffs, stretches, pairs, camera, config)
         if problem is None:
-            return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
+            return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
         rounds += 1
         try:
             pose = _optimise(problem, pose, config)
         except RuntimeError as e:  # gtsam: indeterminant linear system
             log.debug("refinement failed: %s", e)
-            return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
-        # paper: reject the matches the refined pose does not explain, re-associate at that pose, repeat
-        threshold_px = _threshold_px(problem, pose, config)
-        if config.reassociate:
-            rematch = replace(match, distance_px=min(match.distance_px, threshold_px))
-            new = match_segments(lines2d, lines3d, camera, pose, rematch)
-        else:
-            new = current[_worst_px(problem, pose) <= threshold_px]
-        log.debug("round %d: %d -> %d matches within %.2f px", rounds, len(current), len(new), threshold_px)
-        if _same(new, current):
-            break
-        current, problem = new, None
-    if problem is None:  # the last round changed the set: report the new set at the last pose
-        problem, current = _problem(coeffs, lines3d, camera, current, pose, config)
-        if problem is None:
-            return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
+            return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
+        tolerance = _threshold_px(problem, pose, config, tolerance)
+        previous = pairs
+    if problem is None:
+        return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
     covariance = _covariance(problem, pose, config)
+    final = score_pose(image, lines3d, camera, pose, score_config, visible)
     if not np.isfinite(covariance).all():
-        return _unrefined(coeffs, lines3d, camera, cam_from_world, matches, config, rounds)
-    return Refinement(pose, current, covariance, _rms_px(problem, pose), rounds)
+        return Refinement(pose, final, np.full((6, 6), np.nan), _rms_px(problem, pose), rounds)
+    return Refinement(pose, final, covariance, _rms_px(problem, pose), rounds)
+
+
+def fragments(
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    scored: Score,
+    config: RefineConfig,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((P, 2) ``(i2d, j3d)`` pairs, (P, 6) world points): the ends of each covered stretch of at
+    least ``min_cover_px``, carried back onto the map line (the point of line j nearest the viewing ray)."""
+    keep = _one_per_stretch(scored.pairs[:, 0], scored.cover, config.min_cover_px)
+    pairs, cover = scored.pairs[keep], scored.cover[keep]
+    if len(pairs) == 0:
+        return pairs, np.zeros((0, 6))
+    seg = image.segments[pairs[:, 0]]
+    unit = (seg[:, 2:4] - seg[:, 0:2]) / image.lengths[pairs[:, 0], None]
+    ends = np.stack([seg[:, 0:2] + cover[:, k, None] * unit for k in (0, 1)], axis=1)  # (P, 2, 2) pixels
+    rays = np.concatenate([ends, np.ones((len(pairs), 2, 1))], axis=2) @ np.linalg.inv(camera.K).T
+    rays = rays @ cam_from_world[:3, :3]  # world directions
+    centre = camera_center(cam_from_world)
+    a, b = lines3d[pairs[:, 1], 0:3], lines3d[pairs[:, 1], 3:6]
+    d = b - a
+    points = np.stack([_nearest_on_line(a, d, centre, rays[:, k]) for k in (0, 1)], axis=1)
+    return pairs, points.reshape(-1, 6)
+
+
+def _one_per_stretch(i: np.ndarray, cover: np.ndarray, min_px: float) -> np.ndarray:
+    """Returns (P,) bool: covers of at least ``min_px`` that do not overlap a longer cover of the same image
+    segment by more than half (two map lines on one image stretch: only the better one is fitted; map
+    fragments along it each keep their own stretch)."""
+    length = cover[:, 1] - cover[:, 0]
+    keep = length >= min_px
+    order = np.lexsort((-length, i))
+    taken: dict[int, list[tuple[float, float]]] = {}
+    for k in order:
+        if not keep[k]:
+            continue
+        lo, hi = cover[k]
+        spans = taken.setdefault(int(i[k]), [])
+        if any(min(hi, b) - max(lo, a) > 0.5 * (hi - lo) for a, b in spans):
+            keep[k] = False
+        else:
+            spans.append((lo, hi))
+    return keep
+
+
+def _nearest_on_line(a: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray) -> np.ndarray:
+    """Returns (P, 3) the points of lines ``a + s d`` nearest to the rays ``c + t r`` (P, 3 each)."""
+    w = a - c
+    dd, dr, rr = (np.einsum("pk,pk->p", x, y) for x, y in ((d, d), (d, r), (r, r)))
+    wd, wr = np.einsum("pk,pk->p", w, d), np.einsum("pk,pk->p", w, r)
+    den = dd * rr - dr * dr
+    s = np.where(den > 1e-12 * dd * rr, (dr * wr - rr * wd) / np.maximum(den, 1e-300), 0.0)
+    return a + s[:, None] * d
 
 
 @dataclass(frozen=True)
 class _Problem:
-    """One match set ready to optimise: its factor graph (one factor) and the factor's precomputation."""
+    """One set of fitted points: its factor graph (one factor) and the factor's precomputation."""
 
     graph: gtsam.NonlinearFactorGraph
     projection: LineProjection
 
 
 def _problem(
-    coeffs: np.ndarray,
-    lines3d: np.ndarray,
-    camera: Camera,
-    matches: np.ndarray,
-    cam_from_world: np.ndarray,
-    config: RefineConfig,
-) -> tuple[_Problem | None, np.ndarray]:
-    """Returns (factor graph of eq. "costs", or None if degenerate; (K', 2) matches it holds).
-
-    coeffs: (N, 3) lines of all 2D segments. Matched 3D segments are cut to their part in front of the
-    camera at ``cam_from_world``; segments wholly behind it are dropped.
-    """
-    segments, front = _front_part(lines3d[matches[:, 1]], cam_from_world, config)
-    matches, segments = matches[front], segments[front]
-    if _degenerate(segments, config):
-        return None, matches
-    projection = LineProjection.build(coeffs[matches[:, 0]], segments, camera, config.min_depth_m)
-    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2 * len(matches), 1.0)  # kernel_px is px
+    coeffs: np.ndarray, points: np.ndarray, pairs: np.ndarray, camera: Camera, config: RefineConfig
+) -> _Problem | None:
+    """Returns the factor graph of eq. "costs" over (P, 6) fitted points, or None if degenerate."""
+    if _degenerate(points, config):
+        return None
+    projection = LineProjection.build(coeffs[pairs[:, 0]], points, camera, config.min_depth_m)
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2 * len(pairs), 1.0)  # kernel_px is px
     if config.kernel != "none":
-        # Scalar: each endpoint residual gets its own weight (and loss); Block would weight the whole image
+        # Scalar: each point residual gets its own weight (and loss); Block would weight the whole image
         kernel = _KERNELS[config.kernel](
             config.kernel_px, gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar
         )
         noise = gtsam.noiseModel.Robust.Create(kernel, noise)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(line_factor(POSE_KEY, projection, noise))
-    return _Problem(graph, projection), matches
-
-
-def _front_part(
-    segments: np.ndarray, cam_from_world: np.ndarray, config: RefineConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((K, 6) segments cut at the near plane, (K,) bool some part in front of it).
-
-    The cost only needs two points of each 3D line (eq. "costs" is collinearity), so an endpoint behind
-    the camera is replaced by the segment's crossing of a near plane at ``near_fraction`` of the mean
-    depth: near-zero depths would give huge Jacobians that drag the pose even under a robust kernel.
-    """
-    a, b = segments[:, 0:3], segments[:, 3:6]
-    za = a @ cam_from_world[2, :3] + cam_from_world[2, 3]
-    zb = b @ cam_from_world[2, :3] + cam_from_world[2, 3]
-    depth = 0.5 * float(za.mean() + zb.mean()) if len(segments) else 0.0
-    near = max(config.min_depth_m, config.near_fraction * depth)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        crossing = a + ((near - za) / (zb - za))[:, None] * (b - a)
-    a = np.where((za < near)[:, None], crossing, a)
-    b = np.where((zb < near)[:, None], crossing, b)
-    return np.c_[a, b], (za >= near) | (zb >= near)
+    return _Problem(graph, projection)
 
 
 def _values(cam_from_world: np.ndarray) -> gtsam.Values:
@@ -189,26 +212,19 @@ def _optimise(problem: _Problem, cam_from_world: np.ndarray, config: RefineConfi
 
 
 def _residuals(problem: _Problem, cam_from_world: np.ndarray) -> np.ndarray:
-    """Returns (K, 2) endpoint-to-line distances px of every match at ``cam_from_world``."""
+    """Returns (P, 2) point-to-line distances px of every pair at ``cam_from_world``."""
     world_from_cam = invert(cam_from_world)
     points = problem.projection.points_cam(world_from_cam[:3, :3], world_from_cam[:3, 3])
     return problem.projection.evaluate(points, jacobian=False)[0].reshape(-1, 2)
 
 
-def _worst_px(problem: _Problem, cam_from_world: np.ndarray) -> np.ndarray:
-    """Returns (K,) the larger endpoint distance of each match, px."""
-    return np.abs(_residuals(problem, cam_from_world)).max(axis=1)
-
-
-def _threshold_px(problem: _Problem, cam_from_world: np.ndarray, config: RefineConfig) -> float:
-    """Returns the outlier distance px: ``outlier_sigmas`` robust sigmas of the residuals, clipped to
-    ``[min_outlier_px, outlier_px]``, so the test tightens as the pose converges on clean data."""
-    if config.outlier_sigmas <= 0:
-        return config.outlier_px
-    sigma = 1.4826 * float(
-        np.median(np.abs(_residuals(problem, cam_from_world)))
-    )  # MAD of zero-mean residuals
-    return float(np.clip(config.outlier_sigmas * sigma, config.min_outlier_px, config.outlier_px))
+def _threshold_px(
+    problem: _Problem, cam_from_world: np.ndarray, config: RefineConfig, ceiling: float
+) -> float:
+    """Returns the next round's covering tolerance px: ``outlier_sigmas`` robust sigmas (MAD) of the
+    residuals, clipped to ``[min_outlier_px, ceiling]``."""
+    sigma = 1.4826 * float(np.median(np.abs(_residuals(problem, cam_from_world))))
+    return float(np.clip(config.outlier_sigmas * sigma, config.min_outlier_px, ceiling))
 
 
 def _rms_px(problem: _Problem, cam_from_world: np.ndarray) -> float:
@@ -227,9 +243,15 @@ def _covariance(problem: _Problem, cam_from_world: np.ndarray, config: RefineCon
     except RuntimeError as e:  # indeterminant system: the matches do not fix all 6 DoF
         log.debug("marginals failed: %s", e)
         return np.full((6, 6), np.nan)
-    psi, dpsi = _influence(_residuals(problem, cam_from_world).ravel(), config)
-    dof = max(len(psi) - 6, 1)
-    return marginal * (float(psi @ psi) / dof / max(float(dpsi.mean()), 0.1) ** 2)
+    return marginal * residual_variance(_residuals(problem, cam_from_world).ravel(), config, 6)
+
+
+def residual_variance(r: np.ndarray, config: RefineConfig, num_params: int) -> float:
+    """Returns Huber's M-estimator variance px^2 ``sum(psi^2) / (n - num_params) / mean(psi')^2`` of (n,)
+    residuals px under the configured kernel (Huber 1981, eq. 7.10): the noise level of fitted lines."""
+    psi, dpsi = _influence(r, config)
+    dof = max(len(psi) - num_params, 1)
+    return float(psi @ psi) / dof / max(float(dpsi.mean()), 0.1) ** 2
 
 
 def _influence(r: np.ndarray, config: RefineConfig) -> tuple[np.ndarray, np.ndarray]:
@@ -246,37 +268,32 @@ def _influence(r: np.ndarray, config: RefineConfig) -> tuple[np.ndarray, np.ndar
     return r, np.ones_like(r)
 
 
-def _degenerate(segments3d: np.ndarray, config: RefineConfig) -> bool:
-    """Returns True when (K, 6) matched 3D segments cannot fix a pose: too few, or all parallel."""
-    if len(segments3d) < config.min_matches:
+def _degenerate(points: np.ndarray, config: RefineConfig) -> bool:
+    """Returns True when (P, 6) fitted map stretches cannot fix a pose: too few, or all parallel."""
+    if len(points) < config.min_matches:
         return True
-    d = segment_directions(segments3d)
+    d = segment_directions(points)
     eig = np.linalg.eigvalsh(d.T @ d)  # squared singular values, ascending; 3x3 is cheaper than an SVD
     return bool(eig[1] < np.sin(np.radians(config.parallel_angle_deg)) ** 2 * eig[2])
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
-    """Returns True if two (K, 2) match sets hold the same rows, in any order."""
+    """Returns True if two (K, 2) pair sets hold the same rows, in any order."""
     if a.shape != b.shape:
         return False
     return bool(np.array_equal(a[np.lexsort(a.T[::-1])], b[np.lexsort(b.T[::-1])]))
 
 
 def _unrefined(
-    coeffs: np.ndarray,
+    image: ImageLines,
     lines3d: np.ndarray,
     camera: Camera,
     cam_from_world: np.ndarray,
-    matches: np.ndarray,
-    config: RefineConfig,
+    score_config: ScoreConfig,
+    visible: np.ndarray | None,
     rounds: int,
 ) -> Refinement:
     """Returns the input pose with NaN covariance: the degenerate outcome."""
-    log.debug("degenerate refinement with %d matches: keeping the input pose", len(matches))
-    rms = float("nan")
-    if len(matches):
-        projection = LineProjection.build(
-            coeffs[matches[:, 0]], lines3d[matches[:, 1]], camera, config.min_depth_m
-        )
-        rms = _rms_px(_Problem(gtsam.NonlinearFactorGraph(), projection), cam_from_world)
-    return Refinement(cam_from_world.copy(), matches, np.full((6, 6), np.nan), rms, rounds)
+    log.debug("degenerate refinement: keeping the input pose")
+    score = score_pose(image, lines3d, camera, cam_from_world, score_config, visible)
+    return Refinement(cam_from_world.copy(), score, np.full((6, 6), np.nan), float("nan"), rounds)

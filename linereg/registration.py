@@ -11,18 +11,20 @@ from .errors import InvalidInputError
 
 @dataclass(frozen=True)
 class Registration:
-    """Outcome of registering one image; ``success=False`` carries a ``reason`` and no pose.
+    """Outcome of registering one image; ``success=False`` carries a ``reason``.
 
-    cam_from_world: (4, 4) float64, ``x_cam = R x_world + t`` (identity when not successful).
-    matches: (K, 2) int64 ``(i2d, j3d)`` inlier correspondences.
-    covariance: (6, 6) float64 from GTSAM marginals, (rotation rad, translation m) order, in the
-        camera (body) frame of the ``world_T_cam`` pose GTSAM optimises; NaN when unavailable.
-    runner_up_inliers: inlier count, BEFORE refinement, of the best hypothesis that differs from the winner
-        (another rotation candidate or a translation clearly away from it).
-    inliers_before_refinement: the winner's inlier count at that same stage (the shared inlier test at its
-        unrefined pose), so that ``ambiguity`` compares like with like: refinement re-associates with a
-        tighter threshold and usually keeps fewer matches than the unrefined count. 0 = unknown (then
-        ``num_inliers`` is the reference).
+    cam_from_world: (4, 4) float64, ``x_cam = R x_world + t`` (identity when nothing was found; the best
+        pose found when the answer is ambiguous: then ``alternatives`` holds its rivals).
+    matches: (K, 2) int64 ``(i2d, j3d)``: for each matched image segment the map segment covering most of it.
+    covariance: (6, 6) float64 from GTSAM marginals, (rotation rad, translation m) order, in the camera
+        (body) frame of the ``world_T_cam`` pose GTSAM optimises; NaN when unavailable.
+    rms_px: root mean square distance of the matched map points to their image lines.
+    score: the pose's score (px): image line length the visible map explains, less what it predicts in
+        empty image areas (``score.py``); explained_fraction: explained length / the image's line length.
+    runner_up_score: the best score of a pose clearly distinct from the winner (another rotation, or a
+        camera centre clearly elsewhere); 0 when none was found.
+    alternatives: (A, 4, 4) float64 distinct poses found, best first (the winner not included), with
+        alternative_scores (A,): what a caller with more knowledge (odometry, a prior) can choose from.
     timings: stage name -> seconds.
     """
 
@@ -32,34 +34,40 @@ class Registration:
     matches: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), dtype=np.int64))
     num_inliers: int = 0
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
-    runner_up_inliers: int = 0
     rms_px: float = float("nan")
-    inliers_before_refinement: int = 0
+    score: float = 0.0
+    explained_fraction: float = 0.0
+    runner_up_score: float = 0.0
+    alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    alternative_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
     timings: dict[str, float] = field(default_factory=dict)
 
     @property
     def ambiguity(self) -> float:
-        """Returns runner-up / winner inlier ratio in [0, 1]: near 1 = another pose explains the image as well.
-
-        Both counts are taken before refinement (``inliers_before_refinement``, else ``num_inliers``); the
-        winner is chosen by its refined fit, so a runner-up may count more unrefined inliers: clipped to 1.
-        """
-        reference = self.inliers_before_refinement or self.num_inliers
-        return min(1.0, self.runner_up_inliers / reference) if reference else 1.0
+        """Returns runner-up score / winner score in [0, 1]: near 1 = a distinct pose explains the image as
+        well; 1 when nothing scored."""
+        if self.score <= 0:
+            return 1.0
+        return float(min(1.0, max(0.0, self.runner_up_score / self.score)))
 
     def to_dict(self) -> dict:
-        """Returns a JSON-friendly dict (lists instead of arrays)."""
+        """Returns a JSON-friendly dict (lists instead of arrays, None for NaN)."""
         return {
             "success": self.success,
             "reason": self.reason,
             "cam_from_world": self.cam_from_world.tolist(),
             "num_inliers": self.num_inliers,
-            "runner_up_inliers": self.runner_up_inliers,
-            "inliers_before_refinement": self.inliers_before_refinement,
+            "score": self.score,
+            "explained_fraction": self.explained_fraction,
+            "runner_up_score": self.runner_up_score,
             "ambiguity": self.ambiguity,
             "rms_px": None if not np.isfinite(self.rms_px) else self.rms_px,
             "covariance": [[float(x) if np.isfinite(x) else None for x in row] for row in self.covariance],
             "matches": self.matches.tolist(),
+            "alternatives": [
+                {"cam_from_world": a.tolist(), "score": float(s)}
+                for a, s in zip(self.alternatives, self.alternative_scores, strict=True)
+            ],
             "timings": dict(self.timings),
         }
 

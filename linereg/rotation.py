@@ -100,6 +100,41 @@ def _scored(
     return R, residual, support - 0.01 * residual, tuples
 
 
+def single_direction_candidates(
+    vds: DirectionClusters, clusters: DirectionClusters, config: RotationConfig | None = None
+) -> list[np.ndarray]:
+    """Returns (3, 3) rotations that map a 3D cluster direction (either sense) onto the strongest vanishing
+    direction, every ``single_step_deg`` about it: one matched direction leaves that angle free, and the
+    search (whose arm test allows a few degrees) finds the rest.
+
+    Used when two directions do not pair (an image with one vanishing direction: a single facade seen
+    head-on, a corridor); the strongest ``top_k`` clusters are tried.
+    """
+    config = config or RotationConfig()
+    if len(vds) == 0 or len(clusters) == 0:
+        return []
+    v = vds.directions[0]
+    steps = np.radians(np.arange(0.0, 360.0, config.single_step_deg))
+    out = []
+    for c in range(min(len(clusters), config.top_k)):
+        for sign in (1.0, -1.0):
+            R0 = _align(sign * clusters.directions[c], v)
+            out += [rotation_from_vector(angle * v) @ R0 for angle in steps]
+    return out
+
+
+def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Returns the smallest rotation taking unit vector a onto unit vector b."""
+    axis = np.cross(a, b)
+    sin, cos = float(np.linalg.norm(axis)), float(a @ b)
+    if sin < 1e-12:
+        if cos > 0:
+            return np.eye(3)
+        other = np.eye(3)[int(np.argmin(np.abs(a)))]  # any axis perpendicular to a: half a turn about it
+        return rotation_from_vector(np.pi * _unit(np.cross(a, other)))
+    return rotation_from_vector(axis / sin * np.arctan2(sin, cos))
+
+
 def rotation_candidates_from_segments(
     lines2d: np.ndarray, lines3d: np.ndarray, camera: Camera, config: RegisterConfig | None = None
 ) -> tuple[list[RotationCandidate], DirectionClusters, DirectionClusters]:

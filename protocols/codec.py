@@ -107,13 +107,21 @@ def encode_request(req: LocalizeRequest) -> bytes:
 
 
 def _encode_prior(prior: Prior) -> dict:
+    out: dict = {}
     if prior.position is not None:
-        return {"position": [float(x) for x in prior.position], "radius_m": float(prior.radius_m)}
-    return {
-        "cam_from_world": encode_array(np.asarray(prior.cam_from_world, dtype=np.float64)),
-        "sigma_rot_deg": float(prior.sigma_rot_deg),
-        "sigma_pos_m": float(prior.sigma_pos_m),
-    }
+        out |= {"position": [float(x) for x in prior.position], "radius_m": float(prior.radius_m)}
+    elif prior.cam_from_world is not None:
+        out |= {
+            "cam_from_world": encode_array(np.asarray(prior.cam_from_world, dtype=np.float64)),
+            "sigma_rot_deg": float(prior.sigma_rot_deg),
+            "sigma_pos_m": float(prior.sigma_pos_m),
+        }
+    if prior.gravity is not None:
+        out |= {
+            "gravity": [float(x) for x in prior.gravity],
+            "gravity_sigma_deg": float(prior.gravity_sigma_deg),
+        }
+    return out
 
 
 def decode_request(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> LocalizeRequest:
@@ -193,26 +201,48 @@ def _decode_segments(obj: object, camera: Camera, limits: Limits) -> np.ndarray 
 
 
 def _decode_prior(d: dict | None) -> Prior | None:
-    """Returns the Prior of a wire prior map (a position with radius, or a pose with sigmas)."""
+    """Returns the Prior of a wire prior map: a position with radius, or a pose with sigmas (or neither),
+    and optionally gravity (a unit vector in the camera frame) with its sigma."""
     if d is None:
         return None
+    gravity, gravity_sigma = None, 5.0
+    if "gravity" in d:
+        gravity = _three(d, "gravity", "prior.gravity (camera frame)")
+        if not np.linalg.norm(gravity) > 0:
+            raise ProtocolError("bad_request", "prior.gravity must not be zero")
+        gravity = gravity / np.linalg.norm(gravity)
+        gravity_sigma = number(d, "gravity_sigma_deg", "prior.gravity_sigma_deg", positive=True)
     if "position" in d:
-        position = require(d, "position", list, "prior.position")
-        if len(position) != 3 or not all(
-            isinstance(x, int | float) and not isinstance(x, bool) for x in position
-        ):
-            raise ProtocolError("bad_request", "prior.position must be 3 numbers (world metres)")
+        pos = _three(d, "position", "prior.position (world metres)")
         radius = number(d, "radius_m", "prior.radius_m", positive=True)
-        pos = np.array(position, dtype=np.float64)
-        if not np.isfinite(pos).all():
-            raise ProtocolError("bad_request", "prior.position must be finite")
-        return Prior(position=pos, radius_m=radius)
+        return Prior(position=pos, radius_m=radius, gravity=gravity, gravity_sigma_deg=gravity_sigma)
+    if "cam_from_world" not in d:
+        if gravity is None:
+            raise ProtocolError("bad_request", "prior needs position, cam_from_world or gravity")
+        return Prior(gravity=gravity, gravity_sigma_deg=gravity_sigma)
     pose = decode_array(d.get("cam_from_world"), "prior.cam_from_world", ("float64",), (2,), 16)
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
         raise ProtocolError("bad_request", "prior.cam_from_world must be a finite (4, 4) float64 array")
     sigma_rot = number(d, "sigma_rot_deg", "prior.sigma_rot_deg", positive=True)
     sigma_pos = number(d, "sigma_pos_m", "prior.sigma_pos_m", positive=True)
-    return Prior(cam_from_world=pose.copy(), sigma_rot_deg=sigma_rot, sigma_pos_m=sigma_pos)
+    return Prior(
+        cam_from_world=pose.copy(),
+        sigma_rot_deg=sigma_rot,
+        sigma_pos_m=sigma_pos,
+        gravity=gravity,
+        gravity_sigma_deg=gravity_sigma,
+    )
+
+
+def _three(d: dict, key: str, name: str) -> np.ndarray:
+    """Returns ``d[key]`` as 3 finite float64 numbers; ProtocolError naming ``name`` otherwise."""
+    value = require(d, key, list, name)
+    if len(value) != 3 or not all(isinstance(x, int | float) and not isinstance(x, bool) for x in value):
+        raise ProtocolError("bad_request", f"{name} must be 3 numbers")
+    out = np.array(value, dtype=np.float64)
+    if not np.isfinite(out).all():
+        raise ProtocolError("bad_request", f"{name} must be finite")
+    return out
 
 
 # --- LocalizeReply and Error --------------------------------------------------------------------------
@@ -227,10 +257,13 @@ def encode_reply(rep: LocalizeReply) -> bytes:
         "cam_from_world": encode_array(np.asarray(rep.cam_from_world, dtype=np.float64)),
         "covariance": encode_array(np.asarray(rep.covariance, dtype=np.float64)),
         "num_inliers": int(rep.num_inliers),
-        "runner_up_inliers": int(rep.runner_up_inliers),
-        "inliers_before_refinement": int(rep.inliers_before_refinement),
+        "score": float(rep.score),
+        "explained_fraction": float(rep.explained_fraction),
+        "runner_up_score": float(rep.runner_up_score),
         "ambiguity": float(rep.ambiguity),
         "rms_px": float(rep.rms_px),
+        "alternatives": encode_array(np.asarray(rep.alternatives, dtype=np.float64).reshape(-1, 4, 4)),
+        "alternative_scores": encode_array(np.asarray(rep.alternative_scores, dtype=np.float64).reshape(-1)),
         "matches": None if rep.matches is None else encode_array(np.asarray(rep.matches, dtype=np.int64)),
         "timings": {str(k): float(v) for k, v in rep.timings.items()},
         "map": {"name": rep.map_name, "id": rep.map_id, "version": rep.map_version},
@@ -258,6 +291,12 @@ def decode_reply(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> LocalizeRe
     timings = optional(doc, "timings", dict) or {}
     if not all(isinstance(k, str) and isinstance(v, float) for k, v in timings.items()):
         raise ProtocolError("bad_request", "timings must map stage names to seconds (floats)")
+    alternatives = decode_array(doc.get("alternatives"), "alternatives", ("float64",), (3,), 16 * 64)
+    alternative_scores = decode_array(
+        doc.get("alternative_scores"), "alternative_scores", ("float64",), (1,), 64
+    )
+    if alternatives.shape[1:] != (4, 4) or alternative_scores.shape != (len(alternatives),):
+        raise ProtocolError("bad_request", "alternatives must be (A, 4, 4) with alternative_scores (A,)")
     map_doc = optional(doc, "map", dict) or {}
     return LocalizeReply(
         id=text(doc, "id", limits.max_id_chars),
@@ -266,10 +305,13 @@ def decode_reply(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> LocalizeRe
         cam_from_world=pose.copy(),
         covariance=cov.copy(),
         num_inliers=require(doc, "num_inliers", int),
-        runner_up_inliers=optional(doc, "runner_up_inliers", int) or 0,
-        inliers_before_refinement=optional(doc, "inliers_before_refinement", int) or 0,
+        score=number(doc, "score"),
+        explained_fraction=number(doc, "explained_fraction"),
+        runner_up_score=number(doc, "runner_up_score"),
         ambiguity=number(doc, "ambiguity", allow_nan=True),
         rms_px=number(doc, "rms_px", allow_nan=True) if doc.get("rms_px") is not None else math.nan,
+        alternatives=alternatives.copy(),
+        alternative_scores=alternative_scores.copy(),
         matches=None if matches is None else matches.copy(),
         timings=timings,
         map_name=optional(map_doc, "name", str) or "",

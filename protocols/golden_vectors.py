@@ -56,7 +56,9 @@ def messages() -> dict[str, object]:
             _CAMERA,
             _pixels(),
             "raw",
-            prior=Prior(cam_from_world=pose, sigma_rot_deg=5.0, sigma_pos_m=0.5),
+            prior=Prior(
+                cam_from_world=pose, sigma_rot_deg=5.0, sigma_pos_m=0.5, gravity=np.array([0.0, 1.0, 0.0])
+            ),
         ),
         "request_segments_position_prior": LocalizeRequest(
             "req-3",
@@ -74,10 +76,13 @@ def messages() -> dict[str, object]:
             pose,
             cov,
             num_inliers=42,
-            runner_up_inliers=7,
-            inliers_before_refinement=45,
-            ambiguity=7 / 45,
+            score=5121.0,
+            explained_fraction=0.625,
+            runner_up_score=1280.25,
+            ambiguity=0.25,
             rms_px=0.61,
+            alternatives=pose[None].copy(),
+            alternative_scores=np.array([1280.25]),
             matches=np.array([[0, 10], [1, 11]], dtype=np.int64),
             timings={"vanishing": 0.004, "refine": 0.012},
             map_name="campus",
@@ -105,7 +110,7 @@ def bad_vectors() -> dict[str, tuple[bytes, str]]:
     good = encode(messages()["request_png"])
     return {
         "bad_version": (
-            pack("localize_request", {"id": "x"}).replace(b"\xa1v\x01", b"\xa1v\x02"),
+            pack("localize_request", {"id": "x"}).replace(b"\xa1v\x02", b"\xa1v\x01"),  # v1: no longer served
             "unsupported_version",
         ),
         "bad_truncated": (good[: len(good) // 2], "bad_request"),

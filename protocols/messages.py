@@ -10,7 +10,7 @@ import numpy as np
 from linereg.camera import Camera
 from linereg.registration import Registration
 
-PROTOCOL_VERSION = 1  # major: a decoder rejects any other with ``unsupported_version``
+PROTOCOL_VERSION = 2  # major: a decoder rejects any other with ``unsupported_version``
 IMAGE_FORMATS = ("png", "jpeg", "raw")
 
 
@@ -29,9 +29,11 @@ class Limits:
 
 @dataclass(frozen=True)
 class Prior:
-    """What the robot already knows: a position within ``radius_m`` or a pose with sigmas (world metres).
+    """What the robot already knows: a position within ``radius_m`` or a pose with sigmas (world metres),
+    and/or the direction of gravity in the camera frame (an IMU).
 
-    Exactly one of ``position`` ((3,) float64 world metres) and ``cam_from_world`` ((4, 4) float64) is set.
+    At most one of ``position`` ((3,) float64 world metres) and ``cam_from_world`` ((4, 4) float64) is set;
+    ``gravity``: (3,) float64 unit vector (down, camera frame) within ``gravity_sigma_deg``, or None.
     """
 
     position: np.ndarray | None = None
@@ -39,6 +41,8 @@ class Prior:
     cam_from_world: np.ndarray | None = None
     sigma_rot_deg: float = math.inf
     sigma_pos_m: float = math.inf
+    gravity: np.ndarray | None = None
+    gravity_sigma_deg: float = 5.0
 
 
 @dataclass(frozen=True)
@@ -68,7 +72,8 @@ class LocalizeReply:
 
     cam_from_world: (4, 4) float64 (x_cam = R x_world + t); covariance: (6, 6) float64 (rotation rad,
     translation m) in the camera frame, NaN when unknown; matches: (K, 2) int64 (i2d, j3d) or None;
-    timings: stage -> seconds; ambiguity: runner-up / winner inliers in [0, 1] (1 = ambiguous).
+    score, runner_up_score: px (``linereg.score``); ambiguity: runner-up / winner score in [0, 1];
+    alternatives: (A, 4, 4) float64 distinct poses with alternative_scores (A,); timings: stage -> seconds.
     """
 
     id: str
@@ -77,10 +82,13 @@ class LocalizeReply:
     cam_from_world: np.ndarray = field(default_factory=lambda: np.eye(4))
     covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
     num_inliers: int = 0
-    runner_up_inliers: int = 0
-    inliers_before_refinement: int = 0
+    score: float = 0.0
+    explained_fraction: float = 0.0
+    runner_up_score: float = 0.0
     ambiguity: float = 1.0
     rms_px: float = math.nan
+    alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    alternative_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
     matches: np.ndarray | None = None
     timings: dict[str, float] = field(default_factory=dict)
     map_name: str = ""
@@ -106,10 +114,13 @@ class LocalizeReply:
             cam_from_world=np.asarray(reg.cam_from_world, dtype=np.float64),
             covariance=np.asarray(reg.covariance, dtype=np.float64),
             num_inliers=int(reg.num_inliers),
-            runner_up_inliers=int(reg.runner_up_inliers),
-            inliers_before_refinement=int(reg.inliers_before_refinement),
+            score=float(reg.score),
+            explained_fraction=float(reg.explained_fraction),
+            runner_up_score=float(reg.runner_up_score),
             ambiguity=float(reg.ambiguity),
             rms_px=float(reg.rms_px),
+            alternatives=np.asarray(reg.alternatives, dtype=np.float64).reshape(-1, 4, 4),
+            alternative_scores=np.asarray(reg.alternative_scores, dtype=np.float64).reshape(-1),
             matches=np.asarray(reg.matches, dtype=np.int64).reshape(-1, 2) if return_matches else None,
             timings={str(k): float(v) for k, v in reg.timings.items()},
             map_name=map_name,
@@ -127,9 +138,12 @@ class LocalizeReply:
             matches=np.array(matches),
             num_inliers=self.num_inliers,
             covariance=np.array(self.covariance),
-            runner_up_inliers=self.runner_up_inliers,
-            inliers_before_refinement=self.inliers_before_refinement,
             rms_px=self.rms_px,
+            score=self.score,
+            explained_fraction=self.explained_fraction,
+            runner_up_score=self.runner_up_score,
+            alternatives=np.array(self.alternatives),
+            alternative_scores=np.array(self.alternative_scores),
             timings=dict(self.timings),
         )
 

@@ -141,7 +141,7 @@ class Client:
         if not answers:
             errors = [r.err.payload.to_bytes() for r in replies if r.err is not None]
             raise _error_of(errors[0]) if errors else ServiceError("timeout", f"no tile answered on {key}")
-        best = max(answers, key=lambda a: (a.success, a.num_inliers))
+        best = max(answers, key=lambda a: (a.success, a.score))
         return best.to_registration()
 
     def info(self, timeout: float = 5.0) -> dict:

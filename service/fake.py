@@ -36,7 +36,8 @@ def _registration(data: np.ndarray) -> Registration:
         matches=np.stack([np.arange(k), np.arange(k)], axis=1).astype(np.int64),
         num_inliers=k + 10,
         covariance=np.eye(6) * 1e-4,
-        runner_up_inliers=3,
+        score=float(100 * (k + 10)),
+        runner_up_score=30.0,
         rms_px=0.5,
         timings={"fake": 1e-4},
     )

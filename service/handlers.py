@@ -77,18 +77,22 @@ def decode_pixels(req: LocalizeRequest) -> np.ndarray:
 
 
 def to_library_prior(prior: protocols.Prior | None):
-    """Returns the library's Prior for a wire prior (the wire one itself while the library has none)."""
+    """Returns the library's Prior for a wire prior."""
     if prior is None:
         return None
-    try:
-        from linereg import Prior as library_prior
-    except ImportError:  # the library's localization stage is not installed: the wire prior has its fields
-        return prior
+    from linereg import Prior as library_prior
+
+    gravity = {"gravity": prior.gravity, "gravity_sigma_deg": prior.gravity_sigma_deg}
     if prior.position is not None:
-        return library_prior(position=prior.position, radius_m=prior.radius_m)
-    return library_prior(
-        cam_from_world=prior.cam_from_world, sigma_rot_deg=prior.sigma_rot_deg, sigma_pos_m=prior.sigma_pos_m
-    )
+        return library_prior(position=prior.position, radius_m=prior.radius_m, **gravity)
+    if prior.cam_from_world is not None:
+        return library_prior(
+            cam_from_world=prior.cam_from_world,
+            sigma_rot_deg=prior.sigma_rot_deg,
+            sigma_pos_m=prior.sigma_pos_m,
+            **gravity,
+        )
+    return library_prior(**gravity)
 
 
 def handle_info(payload: bytes, info: dict) -> bytes:

@@ -49,10 +49,10 @@ def test_register_rejects_a_non_camera():
 
 
 def test_config_from_dict_overrides_and_rejects_unknown_keys():
-    config = RegisterConfig.from_dict({"match": {"distance_px": 3.0}, "method": "ransac6"})
-    assert config.match.distance_px == 3.0 and config.method == "ransac6"
-    with pytest.raises(linereg.InvalidInputError, match=r"config\.match\.nope"):
-        RegisterConfig.from_dict({"match": {"nope": 1}})
+    config = RegisterConfig.from_dict({"score": {"distance_px": 3.0}, "min_inliers": 9})
+    assert config.score.distance_px == 3.0 and config.min_inliers == 9
+    with pytest.raises(linereg.InvalidInputError, match=r"config\.score\.nope"):
+        RegisterConfig.from_dict({"score": {"nope": 1}})
 
 
 @pytest.mark.parametrize("seed", range(5))

@@ -1,15 +1,11 @@
-import dataclasses
-
 import numpy as np
 import pytest
 
-import linereg
-from linereg.baseline import dlt_lines, register_ransac6
+from linereg.bench.baselines import BaselineConfig, dlt_lines, ransac3, ransac6
 from linereg.bench.oracle import pnl_known_correspondences
-from linereg.config import Ransac6Config, RegisterConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import pose_errors
-from linereg.matching import project_segments
+from linereg.score import project_segments
 from linereg.sim.synthetic import look_at, paper_scene
 
 
@@ -68,8 +64,7 @@ def test_ransac6_succeeds_on_easy_scene(camera, rng):
     # is why the paper's baseline fails on realistic scenes): the easy scene is 6 noise-free lines.
     lines2d, lines3d, truth = general_scene(rng, camera, 6)
     order = rng.permutation(6)
-    config = RegisterConfig(ransac6=Ransac6Config(max_iterations=5000, seed=3))
-    result = register_ransac6(lines2d[order], lines3d, camera, config)
+    result = ransac6(lines2d[order], lines3d, camera, baseline=BaselineConfig(max_iterations=5000, seed=3))
     assert result.success, result.reason
     rot_deg, _, rel = pose_errors(result.cam_from_world, truth)
     assert rot_deg < 0.01 and rel < 1e-3
@@ -80,24 +75,28 @@ def test_ransac6_succeeds_on_easy_scene(camera, rng):
 
 def test_ransac6_fails_with_a_reason_within_its_budget(rng):
     scene = paper_scene(rng, 20, 0.3, 0.3, 2.0)
-    config = RegisterConfig(ransac6=Ransac6Config(max_iterations=50))
-    result = register_ransac6(scene.lines2d, scene.lines3d, scene.camera, config)
+    result = ransac6(scene.lines2d, scene.lines3d, scene.camera, baseline=BaselineConfig(max_iterations=50))
     assert not result.success and "ransac6" in result.reason
     assert np.array_equal(result.cam_from_world, np.eye(4))
 
 
-def test_ransac6_too_few_lines_is_a_failure_not_an_error(camera, rng):
+def test_ransac6_too_few_lines_is_an_input_error(camera, rng):
     lines2d, lines3d, _ = general_scene(rng, camera, 6)
-    result = register_ransac6(lines2d[:4], lines3d, camera)
-    assert not result.success and "needs" in result.reason
+    with pytest.raises(InvalidInputError, match="at least 6"):
+        ransac6(lines2d[:4], lines3d, camera)
     with pytest.raises(InvalidInputError):
-        register_ransac6(lines2d[:, :3], lines3d, camera)
+        ransac6(lines2d[:, :3], lines3d, camera)
 
 
-def test_ransac6_config_section_round_trips():
-    config = RegisterConfig.from_dict({"method": "ransac6", "ransac6": {"max_iterations": 10}})
-    assert config.ransac6.max_iterations == 10 and config.ransac6.stop_inlier_fraction == 0.7
-    assert dataclasses.replace(config, method="vp").ransac6 == config.ransac6
+@pytest.mark.parametrize("seed", range(3))
+def test_ransac3_registers_an_easy_paper_scene(seed):
+    """The paper's own translation stage (random 3-pair RANSAC per rotation candidate): exact on 20 noise-free
+    lines without outliers, where a random triple of compatible pairs is right often enough."""
+    scene = paper_scene(np.random.default_rng(seed), 20, 0.0, 0.0, 0.0)
+    result = ransac3(scene.lines2d, scene.lines3d, scene.camera, baseline=BaselineConfig(max_iterations=3000))
+    assert result.success, result.reason
+    rot_deg, _, rel = pose_errors(result.cam_from_world, scene.cam_from_world)
+    assert rot_deg < 0.01 and rel < 1e-3 and result.num_inliers == 20
 
 
 @pytest.mark.parametrize("noise_px", [0.0, 2.0])
@@ -119,13 +118,3 @@ def test_oracle_rejects_bad_matches(camera):
     bad[0, 1] = len(scene.lines3d)
     with pytest.raises(InvalidInputError, match="outside"):
         pnl_known_correspondences(scene.lines2d, scene.lines3d, bad, scene.camera)
-
-
-def test_register_dispatches_to_ransac6(camera, rng):
-    from linereg.pipeline import register
-
-    lines2d, lines3d, _ = general_scene(rng, camera, 6)
-    config = RegisterConfig(method="ransac6", ransac6=Ransac6Config(max_iterations=3))
-    result = register(lines2d, lines3d, camera, config)
-    assert "ransac6" in result.timings
-    assert isinstance(result, linereg.Registration)

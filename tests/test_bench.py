@@ -91,11 +91,11 @@ def test_bench_synthetic_quick_end_to_end(tmp_path, capsys):
     assert main(argv) == 0
     results = json.loads((out / "results.json").read_text())
     rows = results["rows"]
-    assert {r["method"] for r in rows} == {"vp", "ransac6", "oracle"}
-    assert len(rows) == 3 * len(synthetic.cells(quick=True))
+    assert {r["method"] for r in rows} == set(synthetic.METHODS)
+    assert len(rows) == len(synthetic.METHODS) * len(synthetic.cells(quick=True))
     assert all(r["n"] == 1 and len(r["trials"]) == 1 for r in rows)
     assert all(r["success_rate"] == 1.0 for r in rows if r["method"] == "oracle")
-    assert results["config"]["ransac6"]["max_iterations"] == 20
+    assert results["options"]["baseline"]["max_iterations"] == 20
     pngs = sorted(p.name for p in out.glob("*.png"))
     assert pngs == sorted(
         [
@@ -117,12 +117,12 @@ def test_bench_synthetic_rejects_unknown_method(tmp_path, capsys):
 
 def test_bench_synthetic_reads_a_config_file(tmp_path):
     path = tmp_path / "c.json"
-    path.write_text('{"match": {"distance_px": 4.0}, "ransac6": {"max_iterations": 7}}')
+    path.write_text('{"score": {"distance_px": 3.0}, "search": {"peaks": 7}}')
     parser = argparse.ArgumentParser()
     synthetic.configure(parser)
     options = synthetic.options_from_args(parser.parse_args(["--config", str(path)]))
-    assert options.config.match.distance_px == 4.0 and options.config.ransac6.max_iterations == 7
-    path.write_text('{"match": {"nope": 1}}')
+    assert options.config.score.distance_px == 3.0 and options.config.search.peaks == 7
+    path.write_text('{"score": {"nope": 1}}')
     with pytest.raises(InvalidInputError, match="nope"):
         synthetic.options_from_args(parser.parse_args(["--config", str(path)]))
 

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from linereg.geometry import camera_center, line_coefficients
-from linereg.matching import project_segments
+from linereg.score import project_segments
 from linereg.sim.building import EDGE_KINDS, FACE_KINDS, BuildingConfig, make_building, rect_minus
 from linereg.sim.building_scene import building_scene
 from linereg.sim.views import camera_poses, occluded, project_building, street_camera

@@ -40,7 +40,7 @@ def test_success_has_a_legend_of_the_three_colours_and_the_numbers(scene):
     cam_from_world, lines2d, lines3d = scene
     matches = np.array([[2, 2], [3, 3]])
     reg = Registration(True, cam_from_world=cam_from_world, matches=matches, num_inliers=42,
-                       runner_up_inliers=21, timings={"total": 0.25})  # fmt: skip
+                       score=400.0, explained_fraction=0.5, runner_up_score=200.0, timings={"total": 0.25})  # fmt: skip
     picture = draw_overlay(PHOTO, CAMERA, lines2d, lines3d, reg)
     assert picture.shape == (480, 640, 3) and picture.dtype == np.uint8
     x0, y0, x1, y1 = legend_box(picture)
@@ -50,19 +50,21 @@ def test_success_has_a_legend_of_the_three_colours_and_the_numbers(scene):
         assert near(legend, color).sum() >= 10, color  # a sample line of each colour
     assert (legend > 200).all(axis=2).sum() > 100  # white text beside them
     assert near(picture[y1 + 5 :, :], RED).sum() == 0  # nothing but the photo below the box
-    assert overlay_caption(reg) == "localized | 42 inliers, ambiguity 0.50, 250 ms"
+    assert overlay_caption(reg) == "localized | 42 inliers, 50 % explained, ambiguity 0.50, 250 ms"
 
 
 def test_caption_band_is_one_readable_line(scene):
     _, lines2d, lines3d = scene
     reason = "ambiguous: another pose explains the image as well " * 4
-    reg = Registration(False, reason=reason, num_inliers=12, runner_up_inliers=12)
+    reg = Registration(False, reason=reason, num_inliers=12, score=80.0, runner_up_score=80.0)
     picture = draw_overlay(PHOTO, CAMERA, lines2d, lines3d, reg)
     band = int(np.argmax(np.percentile(picture[:, :, 1], 10, axis=1) > 60))  # the first row below the band
     assert 14 <= band <= 40, band
     assert (picture[:band, :] > 200).all(axis=2).sum() > 200  # the text
     caption = overlay_caption(reg)
-    assert caption.startswith("not localized | 12 inliers, ambiguity 1.00 | ambiguous: another pose")
+    assert caption.startswith(
+        "not localized | 12 inliers, 0 % explained, ambiguity 1.00 | ambiguous: another pose"
+    )
 
 
 def test_failure_legend_lists_only_what_is_drawn(scene):

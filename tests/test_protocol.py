@@ -76,7 +76,7 @@ def _request(**overrides) -> dict:
 @pytest.mark.parametrize(
     ("overrides", "code"),
     [
-        ({"v": 2}, "unsupported_version"),
+        ({"v": 1}, "unsupported_version"),
         ({"v": "1"}, "bad_request"),
         ({"type": "localize_reply"}, "bad_request"),
         ({"id": 5}, "bad_request"),
@@ -141,7 +141,8 @@ def test_reply_round_trip_gives_back_the_registration():
     reg = protocols.decode_reply(encode(reply)).to_registration()
     assert reg.success and reg.num_inliers == 42 and reg.matches.shape == (2, 2)
     assert np.array_equal(reg.cam_from_world, reply.cam_from_world)
-    assert reg.ambiguity == pytest.approx(7 / 45)  # both counts before refinement, as in-process
+    assert reg.ambiguity == pytest.approx(0.25)  # runner-up score / score, as in-process
+    assert reg.alternatives.shape == (1, 4, 4) and reg.alternative_scores.tolist() == [1280.25]
 
 
 def test_every_registration_field_crosses_the_wire():
@@ -157,9 +158,12 @@ def test_every_registration_field_crosses_the_wire():
         matches=np.array([[0, 10], [1, 11], [3, 2]], dtype=np.int64),
         num_inliers=3,
         covariance=np.diag(np.arange(1.0, 7.0)) * 1e-4,
-        runner_up_inliers=2,
         rms_px=0.5,
-        inliers_before_refinement=5,
+        score=812.5,
+        explained_fraction=0.5,
+        runner_up_score=120.0,
+        alternatives=np.stack([np.eye(4), 2 * np.eye(4)]),
+        alternative_scores=np.array([120.0, 60.0]),
         timings={"refine": 0.01},
     )
     names = {f.name for f in dataclasses.fields(Registration)}
@@ -215,7 +219,7 @@ def test_decoder_never_crashes_on_random_bytes(data):
 @given(st.dictionaries(st.sampled_from(["v", "type", "id", "camera", "image", "segments", "prior", "options"]),
                        _msgpack_values, max_size=8))  # fmt: skip
 def test_decoder_never_crashes_on_wrong_types(fields):
-    data = msgpack.packb({"v": 1, "type": "localize_request"} | fields, use_bin_type=True)
+    data = msgpack.packb({"v": 2, "type": "localize_request"} | fields, use_bin_type=True)
     try:
         protocols.decode_request(data)
     except ProtocolError as e:

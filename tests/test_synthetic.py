@@ -1,10 +1,10 @@
 import numpy as np
 import pytest
 
-from linereg.config import MatchConfig
+from linereg.config import ScoreConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import camera_center, line_coefficients, segment_lengths, transform_points
-from linereg.matching import match_matrix, project_segments
+from linereg.score import image_lines, project_segments, score_pose
 from linereg.sim.synthetic import Scene, clip_to_image, look_at, paper_camera, paper_scene
 
 
@@ -38,11 +38,12 @@ def test_paper_scene_true_matches_reproject(seed):
     noise = 2.0
     scene = paper_scene(np.random.default_rng(seed), noise_px=noise)
     assert endpoint_distances(scene).max() < 5 * noise
-    i, j = scene.true_matches.T
-    projected, _ = project_segments(scene.lines3d[j], scene.camera, scene.cam_from_world, 1e-3)
-    # the shared match test accepts nearly all true pairs (short, noisy segments may tilt past 6 px)
-    inlier, _ = match_matrix(scene.lines2d[i], projected, MatchConfig())
-    assert np.diag(inlier).mean() > 0.9
+    # the score's pair test finds nearly all true pairs at the true pose (short, noisy segments may tilt past
+    # its tolerance): 2 px noise against 4 px
+    image = image_lines(scene.lines2d, scene.camera, ScoreConfig(distance_px=5.0))
+    score = score_pose(image, scene.lines3d, scene.camera, scene.cam_from_world, ScoreConfig(distance_px=5.0))
+    found = {tuple(p) for p in score.pairs.tolist()}
+    assert np.mean([tuple(p) in found for p in scene.true_matches.tolist()]) > 0.9
 
 
 def test_paper_scene_noise_free_is_exact(rng):

@@ -92,14 +92,17 @@ def read_scene(folder: Path) -> list[RealImage]:
 
 
 def gt_matches(lines2d: np.ndarray, line_map: Any, camera: Any, cam_from_world: np.ndarray) -> np.ndarray:
-    """Returns (K, 2) int64 ``(i2d, j3d)``: the (N, 4) undistorted 2D segments' inlier map segments at the
-    true pose (the pipeline's own test, ``matching.match_segments``)."""
-    from ..config import MatchConfig
-    from ..matching import match_segments
+    """Returns (K, 2) int64 ``(i2d, j3d)``: the (N, 4) undistorted 2D segments' matched map segments at the
+    true pose (the score's pair test, as ``Registration.matches``)."""
+    from ..config import RegisterConfig
+    from ..score import image_lines, score_pose
 
     if not len(lines2d) or not len(line_map.segments):
         return np.zeros((0, 2), dtype=np.int64)
-    return match_segments(lines2d, line_map.segments, camera, cam_from_world, MatchConfig())
+    config = RegisterConfig()
+    image = image_lines(lines2d, camera, config.score)
+    score = score_pose(image, line_map.segments, camera, cam_from_world, config.score)
+    return score.matches(config.decide.min_cover)
 
 
 def localize_one(

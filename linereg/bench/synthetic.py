@@ -9,8 +9,9 @@ Sweeps (2 px endpoint noise throughout):
 - ``outliers``: 3D and 2D outlier fractions together, 0.3 and 0.6, at 100 lines (the issue's target cells);
 - ``building``: ``sim.building_scene.building_scene`` with its defaults.
 
-Methods: ``vp`` (``linereg.register``, ours), ``ransac6`` (``register`` with ``method="ransac6"``, the
-paper's baseline) and ``oracle`` (PnL with the true matches, the accuracy reference). Trial ``i`` of a cell
+Methods: ``vp`` (``linereg.register``, ours), ``ransac3`` (the paper's own translation stage: random 3-pair
+RANSAC per rotation candidate), ``ransac6`` (RANSAC over 6 random line pairs + DLT-Lines, the paper's
+baseline) and ``oracle`` (PnL with the true matches, the accuracy reference). Trial ``i`` of a cell
 draws its scene from ``default_rng([seed, i])``, so every method sees the same scenes. Success follows the
 paper: R_e < 0.1 rad and |t_e| / |t_GT| < 0.1; pose errors are summarised over successful trials only,
 runtimes over all trials (wall clock around the call, scene generation excluded).
@@ -29,15 +30,16 @@ from typing import Any
 import numpy as np
 
 from ..bench import report
-from ..config import Ransac6Config, RegisterConfig
+from ..config import RegisterConfig
 from ..geometry import pose_errors
 from ..registration import Registration
 from ..sim import synthetic
 from ..sim.building_scene import building_scene
+from .baselines import BaselineConfig, ransac3, ransac6
 
 log = logging.getLogger(__name__)
 
-METHODS = ("vp", "ransac6", "oracle")
+METHODS = ("vp", "ransac3", "ransac6", "oracle")
 NOISE_PX = 2.0  # paper: sigma = 2 px on the 2D endpoints
 DEFAULT_OUTLIERS = 0.3
 DEFAULT_LINES = 100
@@ -84,6 +86,7 @@ class Options:
     methods: tuple[str, ...] = METHODS
     seed: int = 0
     config: RegisterConfig = dataclasses.field(default_factory=RegisterConfig)
+    baseline: BaselineConfig = dataclasses.field(default_factory=BaselineConfig)
 
 
 def cells(quick: bool) -> list[Cell]:
@@ -97,38 +100,41 @@ def cells(quick: bool) -> list[Cell]:
     return out
 
 
-def run_method(method: str, scene: synthetic.Scene, config: RegisterConfig) -> tuple[Registration, float]:
+def run_method(method: str, scene: synthetic.Scene, options: Options) -> tuple[Registration, float]:
     """Returns (Registration, seconds) of one method on one scene; an exception becomes a failure."""
     start = time.perf_counter()
     try:
-        result = _RUNNERS[method](scene, config)
+        result = _RUNNERS[method](scene, options)
     except Exception as e:  # a crash is a failed trial, recorded with its cause, not a dead benchmark
         log.debug("%s raised", method, exc_info=True)
         result = Registration(False, reason=f"{type(e).__name__}: {e}")
     return result, time.perf_counter() - start
 
 
-# imports inside the runners: while the pipeline is being assembled, its ImportError is a recorded failure
-def _run_register(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
+def _run_register(scene: synthetic.Scene, options: Options) -> Registration:
     from ..pipeline import register
 
-    return register(scene.lines2d, scene.lines3d, scene.camera, config)
+    return register(scene.lines2d, scene.lines3d, scene.camera, options.config)
 
 
-def _run_ransac6(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
-    return _run_register(scene, dataclasses.replace(config, method="ransac6"))
+def _run_ransac3(scene: synthetic.Scene, options: Options) -> Registration:
+    return ransac3(scene.lines2d, scene.lines3d, scene.camera, options.config, options.baseline)
 
 
-def _run_oracle(scene: synthetic.Scene, config: RegisterConfig) -> Registration:
+def _run_ransac6(scene: synthetic.Scene, options: Options) -> Registration:
+    return ransac6(scene.lines2d, scene.lines3d, scene.camera, options.config, options.baseline)
+
+
+def _run_oracle(scene: synthetic.Scene, options: Options) -> Registration:
     from .oracle import pnl_known_correspondences
 
     pose = pnl_known_correspondences(
-        scene.lines2d, scene.lines3d, scene.true_matches, scene.camera, config.match.distance_px
+        scene.lines2d, scene.lines3d, scene.true_matches, scene.camera, options.config.score.distance_px
     )
     return Registration(True, cam_from_world=pose, num_inliers=len(scene.true_matches))
 
 
-_RUNNERS = {"vp": _run_register, "ransac6": _run_ransac6, "oracle": _run_oracle}
+_RUNNERS = {"vp": _run_register, "ransac3": _run_ransac3, "ransac6": _run_ransac6, "oracle": _run_oracle}
 
 
 def run_cell(cell: Cell, options: Options, progress: report.Progress | None = None) -> list[dict[str, Any]]:
@@ -141,7 +147,7 @@ def run_cell(cell: Cell, options: Options, progress: report.Progress | None = No
             log.warning("%s scene of trial %d failed: %s", cell.sweep, trial, e)
             scene, failure = None, Registration(False, reason=f"scene generation: {type(e).__name__}: {e}")
         for method in options.methods:
-            result, seconds = run_method(method, scene, options.config) if scene else (failure, 0.0)
+            result, seconds = run_method(method, scene, options) if scene else (failure, 0.0)
             errors = (
                 pose_errors(result.cam_from_world, scene.cam_from_world) if result.success and scene else None
             )
@@ -267,14 +273,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--out", type=Path, default=Path("bench-results/synthetic"), help="output directory")
     parser.add_argument(
-        "--methods", default=",".join(METHODS), help="comma-separated subset of vp,ransac6,oracle"
+        "--methods", default=",".join(METHODS), help=f"comma-separated subset of {','.join(METHODS)}"
     )
     parser.add_argument("--seed", type=int, default=0, help="base seed; trial i uses the rng of [seed, i]")
     parser.add_argument(
         "--ransac6-iterations",
         type=int,
         default=None,
-        help=f"ransac6 iteration cap (default {Ransac6Config.max_iterations}, quick {QUICK_RANSAC6_ITERATIONS})",
+        help=f"ransac3/ransac6 iteration cap (default {BaselineConfig.max_iterations}, quick {QUICK_RANSAC6_ITERATIONS})",
     )
     parser.add_argument("--config", type=Path, help="JSON overrides of RegisterConfig, per section")
     parser.set_defaults(func=run)
@@ -295,12 +301,12 @@ def options_from_args(args: argparse.Namespace) -> Options:
         raise InvalidInputError(f"--trials must be >= 1, got {trials}")
     config = _read_config(args.config) if args.config else RegisterConfig()
     iterations = args.ransac6_iterations or (
-        QUICK_RANSAC6_ITERATIONS if args.quick else config.ransac6.max_iterations
+        QUICK_RANSAC6_ITERATIONS if args.quick else BaselineConfig().max_iterations
     )
-    config = dataclasses.replace(
-        config, ransac6=dataclasses.replace(config.ransac6, max_iterations=iterations)
+    baseline = BaselineConfig(max_iterations=iterations)
+    return Options(
+        quick=args.quick, trials=trials, methods=methods, seed=args.seed, config=config, baseline=baseline
     )
-    return Options(quick=args.quick, trials=trials, methods=methods, seed=args.seed, config=config)
 
 
 def _read_config(path: Path) -> RegisterConfig:

@@ -15,7 +15,7 @@ import numpy as np
 from ..camera import Camera
 from ..errors import InvalidInputError
 from ..geometry import make_cam_from_world, segment_lengths
-from ..matching import project_segments
+from ..score import project_segments
 
 MIN_LENGTH_PX = 20.0  # shorter projections are dropped: LSD would not report them reliably either
 MIN_DEPTH_M = 1e-3  # segments are cut where they come nearer to the camera plane than this

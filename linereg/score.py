@@ -1,0 +1,412 @@
+"""The score of a pose, without correspondences: how much of the image's line length the visible map explains.
+
+One scoring function serves the search, the decision, the benchmarks and the overlays (issue 9):
+
+- **explained** (px): for every image segment, the length of it that projected map segments cover. A map
+  segment covers the part of an image segment where it runs within ``distance_px`` of the image segment's
+  line (tested at both ends of the shared stretch) at an angle below ``angle_deg``. Per image segment the
+  covered stretches are united, so three map fragments along an image line explain it as well as one whole
+  segment, and two map lines on one image line do not count it twice.
+- **unexplained** (px): the projected length of visible map segments that falls where the image shows no
+  line at all (farther than ``empty_radius_fraction`` of the image diagonal from every image segment): a
+  wrong pose puts facade edges into the sky, onto blank walls or the empty ground.
+- **score** = explained - ``unexplained_weight`` x unexplained.
+
+The image side (``ImageLines``: lines, angles, the empty-area raster) is computed once per image. The pair
+test and the union run in compiled loops (numba): the search scores thousands of poses per image.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+
+from .camera import Camera
+from .config import ScoreConfig
+from .geometry import segment_lengths
+
+CELLS_PER_RADIUS = 8  # the empty-area raster: cells of radius / 8, fine next to the radius, cheap
+GRID_PX = 24.0  # cells of the candidate grid of the pair test: speed only, the same pairs for any size
+
+
+@dataclass(frozen=True)
+class ImageLines:
+    """The image side of the score, computed once per image (``image_lines``).
+
+    segments: (N, 4) float64 undistorted pixels; lengths: (N,); angles: (N,) in [0, pi).
+    grid_ptr, grid_items: the segments near each cell of a ``grid_px`` raster over the image (CSR: the
+        segments of cell (r, c) are ``grid_items[grid_ptr[r * grid_w + c]:grid_ptr[r * grid_w + c + 1]]``),
+        each listed wherever it passes within ``distance_px + grid_px / 2`` (the pair test's candidates).
+    empty: (h, w) bool raster of cells of ``cell_px`` pixels farther than the empty radius from every
+        segment (cell (r, c) covers pixels [c, c + 1) x [r, r + 1) times cell_px).
+    """
+
+    segments: np.ndarray
+    lengths: np.ndarray
+    angles: np.ndarray
+    grid_ptr: np.ndarray
+    grid_items: np.ndarray
+    grid_w: int
+    grid_px: float
+    empty: np.ndarray
+    cell_px: float
+    width: int
+    height: int
+
+    @property
+    def total_length(self) -> float:
+        return float(self.lengths.sum())
+
+
+def image_lines(lines2d: np.ndarray, camera: Camera, config: ScoreConfig) -> ImageLines:
+    """Returns the image side of the score for (N, 4) undistorted pixel segments of an image of ``camera``."""
+    lines2d = np.ascontiguousarray(lines2d, dtype=np.float64).reshape(-1, 4)
+    d = lines2d[:, 2:4] - lines2d[:, 0:2]
+    angles = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
+    radius = config.empty_radius_fraction * float(np.hypot(camera.width, camera.height))
+    empty, cell = _empty_cells(lines2d, camera.width, camera.height, radius)
+    ptr, items, grid_w = _segment_grid(lines2d, camera.width, camera.height, GRID_PX, config.distance_px)
+    return ImageLines(
+        lines2d, segment_lengths(lines2d), angles, ptr, items, grid_w, GRID_PX, empty, cell, camera.width,
+        camera.height,
+    )  # fmt: skip
+
+
+@dataclass(frozen=True)
+class Score:
+    """A pose's score and what it is made of.
+
+    explained: (N,) px of each image segment covered by the visible map; unexplained: px of visible map
+    length in empty image areas; value: ``explained.sum() - weight * unexplained``.
+    pairs: (P, 2) int64 ``(i2d, j3d)`` of every covering pair, with cover: (P, 2) float64 the covered
+        stretch of image segment i, as distances (px) from its first endpoint along it.
+    """
+
+    value: float
+    explained: np.ndarray
+    unexplained: float
+    pairs: np.ndarray
+    cover: np.ndarray
+
+    @property
+    def explained_length(self) -> float:
+        return float(self.explained.sum())
+
+    def matches(self, min_cover: float) -> np.ndarray:
+        """Returns (K, 2) int64 ``(i2d, j3d)``: for each image segment the map segment covering most of it,
+        if that covers at least ``min_cover`` of its length (the correspondences refinement starts from).
+
+        ``min_cover`` is a fraction of the image segment's length (the paper's overlap test: 0.5).
+        """
+        if len(self.pairs) == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        covered = self.cover[:, 1] - self.cover[:, 0]
+        order = np.lexsort((-covered, self.pairs[:, 0]))
+        first = order[np.r_[True, self.pairs[order[1:], 0] != self.pairs[order[:-1], 0]]]
+        return self.pairs[first].astype(np.int64).reshape(-1, 2)
+
+
+def score_pose(
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    config: ScoreConfig,
+    visible: np.ndarray | None = None,
+) -> Score:
+    """Returns the Score of a pose: (M, 6) world map segments seen by an undistorted ``camera`` at (4, 4)
+    ``cam_from_world``; ``visible``: (M,) bool of the segments not hidden by the map's surfaces (None: all)."""
+    projected, index = project_clipped(lines3d, camera, cam_from_world, config.min_depth_m, visible)
+    return score_projected(image, projected, index, config)
+
+
+def score_projected(
+    image: ImageLines, projected: np.ndarray, index: np.ndarray, config: ScoreConfig
+) -> Score:
+    """Returns the Score of (K, 4) projected map segments already clipped to the image; ``index`` (K,) gives
+    each one's row in the map (``Score.pairs`` use it)."""
+    i, j, cover = _covering_pairs(
+        image.segments,
+        image.angles,
+        image.lengths,
+        image.grid_ptr,
+        image.grid_items,
+        image.grid_w,
+        image.grid_px,
+        projected,
+        config.distance_px,
+        np.radians(config.angle_deg),
+    )
+    explained = _union_lengths(i, cover, len(image.segments))
+    unexplained = _length_in_cells(projected, image.empty, image.cell_px)
+    value = float(explained.sum()) - config.unexplained_weight * unexplained
+    pairs = np.stack([i, index[j]], axis=1) if len(i) else np.zeros((0, 2), dtype=np.int64)
+    return Score(value, explained, unexplained, pairs, cover)
+
+
+def project_segments(
+    lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarray, min_depth_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((M, 4) projected pixel segments, (M,) bool some part at depth >= ``min_depth_m``).
+
+    A segment crossing the near plane ``z = min_depth_m`` is cut there (the one near-plane clipping every
+    stage shares); one wholly behind it is not visible (its row holds the clamped, meaningless projection).
+    """
+    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    a = lines3d[:, 0:3] @ R.T + t
+    b = lines3d[:, 3:6] @ R.T + t
+    a, b, visible = clip_near(a, b, min_depth_m)
+    seg = np.empty((len(lines3d), 4))
+    seg[:, 0] = camera.fx * a[:, 0] / a[:, 2] + camera.cx
+    seg[:, 1] = camera.fy * a[:, 1] / a[:, 2] + camera.cy
+    seg[:, 2] = camera.fx * b[:, 0] / b[:, 2] + camera.cx
+    seg[:, 3] = camera.fy * b[:, 1] / b[:, 2] + camera.cy
+    return seg, visible
+
+
+def clip_near(a: np.ndarray, b: np.ndarray, near_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ((K, 3) a, (K, 3) b, (K,) bool kept): camera-frame segments cut at the plane ``z = near_m``.
+
+    An endpoint behind the plane moves onto it along the segment; a segment wholly behind keeps clamped
+    endpoints (depth ``near_m``) and ``kept`` False.
+    """
+    za, zb = a[:, 2], b[:, 2]
+    kept = (za >= near_m) | (zb >= near_m)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = np.where(za != zb, (near_m - za) / (zb - za), 0.0)
+    crossing = a + np.clip(s, 0.0, 1.0)[:, None] * (b - a)
+    a = np.where((za < near_m)[:, None], crossing, a)
+    b = np.where((zb < near_m)[:, None], crossing, b)
+    a[:, 2] = np.maximum(a[:, 2], near_m)
+    b[:, 2] = np.maximum(b[:, 2], near_m)
+    return a, b, kept
+
+
+def project_clipped(
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    min_depth_m: float,
+    visible: np.ndarray | None = None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((K, 4) projected segments cut to the image rectangle, (K,) int64 their rows in ``lines3d``).
+
+    Segments behind the camera, outside the image or not ``visible`` are left out.
+    """
+    projected, front = project_segments(lines3d, camera, cam_from_world, min_depth_m)
+    if visible is not None:
+        front &= visible
+    rows = np.flatnonzero(front)
+    clipped, inside = clip_to_image(projected[rows], camera.width, camera.height)
+    return clipped[inside], rows[inside]
+
+
+def clip_to_image(segments: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((N, 4) segments cut to the image rectangle, (N,) bool some part inside) (Liang-Barsky).
+
+    The rectangle runs from the outer edge of the first pixel to that of the last, [-0.5, width - 0.5].
+    """
+    a, d = segments[:, 0:2], segments[:, 2:4] - segments[:, 0:2]
+    lo, hi = np.array([-0.5, -0.5]), np.array([width - 0.5, height - 0.5])
+    inside_a = (a >= lo) & (a <= hi)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1, t2 = (lo - a) / d, (hi - a) / d
+    enter = np.where(d != 0, np.minimum(t1, t2), np.where(inside_a, -np.inf, np.inf))
+    leave = np.where(d != 0, np.maximum(t1, t2), np.where(inside_a, np.inf, -np.inf))
+    t0 = np.maximum(enter.max(axis=1), 0.0)
+    t1_ = np.minimum(leave.min(axis=1), 1.0)
+    keep = t1_ > t0
+    t0, t1_ = np.where(keep, t0, 0.0), np.where(keep, t1_, 0.0)  # dropped rows: finite, never used
+    return np.c_[a + t0[:, None] * d, a + t1_[:, None] * d], keep
+
+
+# ---------------------------------------------------------------------------------------------- kernels
+
+
+@numba.njit(cache=True)
+def _cover(seg: np.ndarray, length: float, p: np.ndarray, distance: float) -> tuple[float, float]:
+    """Returns (lo, hi) px along image segment ``seg`` (4,) covered by projected segment ``p`` (4,), or
+    (0, 0) when it does not cover: the shared stretch along the image segment, where the projected line
+    must lie within ``distance`` of the image segment's line at both ends."""
+    ux = (seg[2] - seg[0]) / length
+    uy = (seg[3] - seg[1]) / length
+    s1 = (p[0] - seg[0]) * ux + (p[1] - seg[1]) * uy
+    s2 = (p[2] - seg[0]) * ux + (p[3] - seg[1]) * uy
+    e1 = (p[1] - seg[1]) * ux - (p[0] - seg[0]) * uy
+    e2 = (p[3] - seg[1]) * ux - (p[2] - seg[0]) * uy
+    lo = max(min(s1, s2), 0.0)
+    hi = min(max(s1, s2), length)
+    if hi <= lo or s1 == s2:
+        return 0.0, 0.0
+    slope = (e2 - e1) / (s2 - s1)
+    if abs(e1 + slope * (lo - s1)) > distance or abs(e1 + slope * (hi - s1)) > distance:
+        return 0.0, 0.0
+    return lo, hi
+
+
+@numba.njit(cache=True)
+def _covering_pairs(
+    segments: np.ndarray,
+    angles: np.ndarray,
+    lengths: np.ndarray,
+    grid_ptr: np.ndarray,
+    grid_items: np.ndarray,
+    grid_w: int,
+    grid_px: float,
+    projected: np.ndarray,
+    distance: float,
+    angle_tol: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ((P,) image rows i, (P,) projected rows j, (P, 2) covered stretch along i) of every pair
+    where projected segment j covers part of image segment i at an angle within ``angle_tol``.
+
+    Candidates: the image segments listed in the grid cells of points every half cell along j (an image
+    segment is listed wherever it passes within ``distance + grid_px / 2``, so none that j passes within
+    ``distance`` of is missed).
+    """
+    grid_h = (len(grid_ptr) - 1) // grid_w
+    seen = np.full(len(segments), -1, np.int64)
+    cap = 4 * (len(projected) + len(segments)) + 64
+    out_i = np.empty(cap, np.int64)
+    out_j = np.empty(cap, np.int64)
+    out_c = np.empty((cap, 2))
+    n = 0
+    for j in range(len(projected)):
+        p = projected[j]
+        dx, dy = p[2] - p[0], p[3] - p[1]
+        length = np.hypot(dx, dy)
+        if length == 0.0:
+            continue
+        angle = np.arctan2(dy, dx) % np.pi
+        count = int(length / (0.5 * grid_px)) + 1
+        for s in range(count + 1):
+            t = s / count
+            c = int((p[0] + t * dx + 0.5) / grid_px)
+            r = int((p[1] + t * dy + 0.5) / grid_px)
+            if r < 0 or r >= grid_h or c < 0 or c >= grid_w:
+                continue
+            cell = r * grid_w + c
+            for q in range(grid_ptr[cell], grid_ptr[cell + 1]):
+                i = grid_items[q]
+                if seen[i] == j:
+                    continue
+                seen[i] = j
+                gap = abs(angles[i] - angle)
+                # short segments' angles are as uncertain as the distance test allows at their ends
+                if min(gap, np.pi - gap) > max(angle_tol, np.arctan(2.0 * distance / lengths[i])):
+                    continue
+                lo, hi = _cover(segments[i], lengths[i], p, distance)
+                if hi > lo:
+                    if n == cap:
+                        cap *= 2
+                        out_i = _grow_int(out_i, cap)
+                        out_j = _grow_int(out_j, cap)
+                        out_c = _grow_2(out_c, cap)
+                    out_i[n], out_j[n] = i, j
+                    out_c[n, 0], out_c[n, 1] = lo, hi
+                    n += 1
+    return out_i[:n].copy(), out_j[:n].copy(), out_c[:n].copy()
+
+
+@numba.njit(cache=True)
+def _grow_int(a: np.ndarray, cap: int) -> np.ndarray:
+    out = np.empty(cap, a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+@numba.njit(cache=True)
+def _grow_2(a: np.ndarray, cap: int) -> np.ndarray:
+    out = np.empty((cap, 2))
+    out[: len(a)] = a
+    return out
+
+
+@numba.njit(cache=True)
+def _union_lengths(i: np.ndarray, cover: np.ndarray, n: int) -> np.ndarray:
+    """Returns (n,) the length of the union of the covered stretches (P, 2) of each image segment ``i``."""
+    out = np.zeros(n)
+    if len(i) == 0:
+        return out
+    order = np.argsort(i * 1e7 + cover[:, 0])  # by segment, then start (stretches are < 1e7 px)
+    current, start, end = -1, 0.0, 0.0
+    for k in order:
+        if i[k] != current:
+            if current >= 0:
+                out[current] += end - start
+            current, start, end = i[k], cover[k, 0], cover[k, 1]
+        elif cover[k, 0] > end:
+            out[current] += end - start
+            start, end = cover[k, 0], cover[k, 1]
+        else:
+            end = max(end, cover[k, 1])
+    out[current] += end - start
+    return out
+
+
+@numba.njit(cache=True)
+def _length_in_cells(projected: np.ndarray, mask: np.ndarray, cell: float) -> float:
+    """Returns the length (px) of (K, 4) segments inside the True cells of ``mask``, sampled every half cell."""
+    total = 0.0
+    h, w = mask.shape
+    for k in range(len(projected)):
+        p = projected[k]
+        length = np.hypot(p[2] - p[0], p[3] - p[1])
+        count = max(int(np.ceil(length / (0.5 * cell))), 1)
+        step = length / count
+        for s in range(count):
+            t = (s + 0.5) / count
+            c = int((p[0] + t * (p[2] - p[0]) + 0.5) / cell)
+            r = int((p[1] + t * (p[3] - p[1]) + 0.5) / cell)
+            if 0 <= r < h and 0 <= c < w and mask[r, c]:
+                total += step
+    return total
+
+
+def _segment_grid(
+    lines2d: np.ndarray, width: int, height: int, cell: float, distance_px: float
+) -> tuple[np.ndarray, np.ndarray, int]:
+    """Returns (ptr, items, grid width) of the CSR table: the segments passing within ``distance_px +
+    cell / 2`` of each cell of a ``cell`` px raster (sampled every quarter cell, each sample marking the
+    cells of its dilated box)."""
+    w, h = int(np.ceil((width + 0.5) / cell)), int(np.ceil((height + 0.5) / cell))
+    reach = distance_px + 0.5 * cell
+    length = segment_lengths(lines2d)
+    count = np.maximum(np.ceil(length / (0.25 * cell)).astype(np.int64), 1) + 1
+    owner = np.repeat(np.arange(len(lines2d)), count)
+    t = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)) / (count[owner] - 1)
+    points = lines2d[owner, 0:2] + t[:, None] * (lines2d[owner, 2:4] - lines2d[owner, 0:2])
+    keys = []
+    for ox in (-reach, 0.0, reach):
+        for oy in (-reach, 0.0, reach):
+            c = np.floor((points[:, 0] + ox + 0.5) / cell).astype(np.int64)
+            r = np.floor((points[:, 1] + oy + 0.5) / cell).astype(np.int64)
+            ok = (c >= 0) & (c < w) & (r >= 0) & (r < h)
+            keys.append((r[ok] * w + c[ok]) * len(lines2d) + owner[ok])
+    pairs = np.unique(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    cells, items = np.divmod(pairs, max(len(lines2d), 1))
+    ptr = np.searchsorted(cells, np.arange(w * h + 1)).astype(np.int64)
+    return ptr, items.astype(np.int64), w
+
+
+def _empty_cells(lines2d: np.ndarray, width: int, height: int, radius_px: float) -> tuple[np.ndarray, float]:
+    """Returns ((h, w) bool cells farther than ``radius_px`` from every segment, cell size px)."""
+    cell = max(radius_px / CELLS_PER_RADIUS, 1.0)
+    h, w = int(np.ceil((height + 0.5) / cell)), int(np.ceil((width + 0.5) / cell))
+    occupied = np.zeros((h, w), np.uint8)
+    if len(lines2d):
+        length = segment_lengths(lines2d)
+        count = np.maximum(np.ceil(length / (0.5 * cell)).astype(np.int64), 1)
+        owner = np.repeat(np.arange(len(lines2d)), count)
+        t = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count) + 0.5) / count[owner]
+        points = lines2d[owner, 0:2] + t[:, None] * (lines2d[owner, 2:4] - lines2d[owner, 0:2])
+        c = np.clip(((points[:, 0] + 0.5) / cell).astype(np.int64), 0, w - 1)
+        r = np.clip(((points[:, 1] + 0.5) / cell).astype(np.int64), 0, h - 1)
+        occupied[r, c] = 1
+    else:
+        return np.ones((h, w), bool), cell
+    distance = cv2.distanceTransform(1 - occupied, cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+    return distance * cell > radius_px, cell

@@ -1,0 +1,525 @@
+"""The pose search: for each rotation candidate, every image point votes for the camera centres it allows.
+
+Under a rotation R, an image point (a corner or a free segment end, ``points.py``) whose arms agree with
+those of a map point X can only be X's image if the camera centre lies on the ray ``X - lambda r`` through
+it (r: the point's viewing ray, in world coordinates). Every such pair votes along its ray in a voxel grid
+over the search region, each image point at most once per voxel; where the rays of many image points meet,
+the camera is. No pair is left out: the votes are exhaustive over point correspondences, and a point need
+not be the end of a whole segment (a corner stays where it is when LSD breaks or shortens a line).
+
+The best voxels of each rotation (local maxima) are then solved locally: the score's covering pairs at a
+tolerance spanning the voxel, Gauss-Newton on the endpoint-to-line distances for the whole pose (rotation
+too: a candidate rotation from vanishing directions is off by a degree or two), the tolerance shrinking
+to the score's own. What comes out are scored poses; the composer refines the best and decides.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+
+import numba
+import numpy as np
+
+from .camera import Camera
+from .config import ScoreConfig, SearchConfig
+from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_from_vector
+from .line_factor import LineProjection
+from .points import Points
+from .score import ImageLines, Score, score_pose
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class Found:
+    """A pose the search solved: (4, 4) cam_from_world, its Score and the rotation candidate it came from."""
+
+    cam_from_world: np.ndarray
+    score: Score
+    rotation: int
+
+    @property
+    def centre(self) -> np.ndarray:
+        return camera_center(self.cam_from_world)
+
+
+@dataclass
+class SearchStats:
+    """What the search did: rays voted, voxels of the grid and their size, peaks solved."""
+
+    rays: int = 0
+    voxels: int = 0
+    voxel_m: float = 0.0
+    solved: int = 0
+    per_rotation: list[int] = field(default_factory=list)
+
+
+def search(
+    image: ImageLines,
+    image_pts: Points,
+    lines3d: np.ndarray,
+    map_pts: Points,
+    signatures: MapSignatures,
+    camera: Camera,
+    rotations: list[np.ndarray],
+    regions: list[tuple[np.ndarray, np.ndarray]],
+    config: SearchConfig,
+    score_config: ScoreConfig,
+    visible: np.ndarray | None = None,
+) -> tuple[list[Found], SearchStats]:
+    """Returns (the solved poses, best score first; SearchStats) for camera centres in ``regions`` (boxes
+    ((3,) low, (3,) high corner) in world metres, each voted on its own grid: a box near the map gets fine
+    voxels, a wider one around it coarser ones) and each (3, 3) world -> camera rotation in ``rotations``.
+
+    image, image_pts: the image side; lines3d, map_pts, signatures: (M, 6) world map segments, their points
+    and those grouped by arm directions (``map_signatures``);
+    camera: undistorted; visible: (M,) bool of segments that take part in the score (None: all).
+    """
+    grids = []
+    for lo, hi in regions:
+        lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
+        voxel = float(np.cbrt(np.prod(np.maximum(hi - lo, 1e-9)) / config.voxels))
+        grids.append(_Grid(lo, hi, voxel, np.maximum(np.ceil((hi - lo) / voxel).astype(np.int64), 1)))
+    stats = SearchStats(voxels=sum(int(np.prod(g.dims)) for g in grids), voxel_m=grids[0].voxel)
+    fine = _Grid.empty(config.fine_voxels)
+    peaks: list[tuple[float, int, np.ndarray, float]] = []
+    for r, R in enumerate(rotations):
+        rays = _pair_rays(image_pts, map_pts, signatures, camera, R, config)
+        stats.rays += len(rays[0])
+        stats.per_rotation.append(len(rays[0]))
+        for grid in grids:
+            # coarse votes over the whole region, then finer ones around the best coarse voxels
+            grid.vote(rays, map_pts.positions, image_pts.weight)
+            for centre, _ in zip(*_peaks(grid, config.coarse_peaks), strict=True):
+                fine.place(centre - config.fine_span * grid.voxel, centre + config.fine_span * grid.voxel)
+                fine.vote(rays, map_pts.positions, image_pts.weight)
+                centres, votes = _peaks(fine, 1)
+                peaks += [(float(v), r, c, fine.voxel) for v, c in zip(votes, centres, strict=True)]
+    # a symmetric building gives every rotation as many votes as the truth: each fine peak gets one quick
+    # solve (pairs at a tolerance spanning its voxel and the rotation's error, one pose fit), is scored at
+    # the score's own tolerance, and the best of those are solved fully
+    quick = replace(config, solve_rounds=1)
+    screened = []
+    for _, r, centre, size in peaks:
+        pose = make_cam_from_world(rotations[r], -rotations[r] @ centre)
+        solved = solve_locally(image, lines3d, camera, pose, size, quick, score_config, visible)
+        stats.solved += 1
+        if solved is not None:
+            screened.append((solved[1].value, r, solved[0], size))
+    screened.sort(key=lambda p: -p[0])
+    found: list[Found] = []
+    for _, r, pose, size in screened[: config.peaks]:
+        solved = solve_locally(image, lines3d, camera, pose, 0.5 * size, config, score_config, visible)
+        if solved is not None:
+            found.append(Found(solved[0], solved[1], r))
+    found.sort(key=lambda p: -p.score.value)
+    return found, stats
+
+
+@dataclass(frozen=True)
+class MapSignatures:
+    """The map points grouped by the direction clusters of their arms, so that the image points of a
+    rotation find their compatible map points without testing every pair.
+
+    order: (K,) map point indices sorted by key; keys: (K,) sorted keys (two arms: ``lo * 2C + hi`` of the
+    arm codes ``2 c + (arm against cluster c's direction)``, ``lo <= hi``; one arm: ``(2C)^2 + code``; -1:
+    an arm outside every cluster); swapped: (K,) True where the canonical order swaps the point's arms.
+    """
+
+    order: np.ndarray
+    keys: np.ndarray
+    swapped: np.ndarray
+    directions: np.ndarray
+    loose: np.ndarray  # map points with an arm outside every cluster: tested one by one
+
+
+def map_signatures(map_pts: Points, labels: np.ndarray, directions: np.ndarray) -> MapSignatures:
+    """Returns the MapSignatures of map points whose arms lie on segments with cluster ``labels`` (M,)
+    (-1: none) of the (C, 3) cluster ``directions``."""
+    seg = map_pts.arm_segments
+    label = np.where(seg >= 0, labels[np.maximum(seg, 0)], -2) if len(labels) else np.full(seg.shape, -2)
+    label = np.where((seg >= 0) & (label < 0), -1, label)  # -1: an arm outside every cluster, -2: no arm
+    arms = np.nan_to_num(map_pts.arms)
+    dirs = directions[np.maximum(label, 0)] if len(directions) else np.zeros((*seg.shape, 3))
+    against = np.einsum("kad,kad->ka", arms, dirs) < 0
+    code = np.where(label >= 0, 2 * label + against, -1)
+    nc = 2 * len(directions)
+    two = seg[:, 1] >= 0
+    loose = (label[:, 0] == -1) | (two & (label[:, 1] == -1))
+    swapped = two & (code[:, 0] > code[:, 1])
+    lo_code = np.where(swapped, code[:, 1], code[:, 0])
+    hi_code = np.where(swapped, code[:, 0], code[:, 1])
+    keys = np.where(two, lo_code * nc + hi_code, nc * nc + code[:, 0])
+    keys = np.where(loose, -1, keys)
+    order = np.argsort(keys, kind="stable")
+    return MapSignatures(order, keys[order], swapped, directions, np.flatnonzero(loose))
+
+
+class _Grid:
+    """A voxel grid of votes over a box: accumulator, and the id of the image point that voted last in each
+    voxel (one vote per image point and voxel; ids grow with every vote pass, so stamps are never reset)."""
+
+    def __init__(self, lo: np.ndarray, hi: np.ndarray, voxel: float, dims: np.ndarray) -> None:
+        self.lo, self.hi, self.voxel, self.dims = lo, hi, voxel, dims
+        self.accumulator = np.zeros(int(np.prod(dims)), np.float32)
+        self.stamp = np.full(len(self.accumulator), -1, np.int64)
+        self.next_id = 0
+
+    @classmethod
+    def empty(cls, side: int) -> _Grid:
+        """Returns a cubic grid of side**3 voxels to be ``place``d."""
+        return cls(np.zeros(3), np.ones(3), 1.0 / side, np.full(3, side, dtype=np.int64))
+
+    def place(self, lo: np.ndarray, hi: np.ndarray) -> None:
+        """Moves the (cubic) grid onto the box [lo, hi]."""
+        self.lo, self.hi = lo, hi
+        self.voxel = float(np.max(hi - lo)) / int(self.dims[0])
+
+    def vote(self, rays: tuple[np.ndarray, ...], positions: np.ndarray, weight: np.ndarray) -> None:
+        """Clears the votes, then lets every ray ``(k, m, lambda_max, direction)`` vote where it crosses."""
+        self.accumulator[:] = 0.0
+        k, m, lam_max, direction = rays
+        _vote_rays(
+            k, m, lam_max, direction, positions, weight, self.lo, self.hi, self.voxel, self.dims,
+            self.accumulator, self.stamp, self.next_id,
+        )  # fmt: skip
+        self.next_id += int(k.max()) + 1 if len(k) else 0
+
+    @property
+    def votes(self) -> np.ndarray:
+        return self.accumulator.reshape(self.dims)
+
+
+def _pair_rays(
+    image_pts: Points,
+    map_pts: Points,
+    signatures: MapSignatures,
+    camera: Camera,
+    R: np.ndarray,
+    config: SearchConfig,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns the rays of every compatible (image point k, map point m) pair under rotation R:
+    ((P,) k, (P,) m, (P,) farthest lambda, (N, 3) each image point's viewing direction, world frame); the
+    camera centre lies on ``X_m - lambda direction_k``, 0 < lambda <= farthest."""
+    directions = np.c_[image_pts.positions, np.ones(len(image_pts))] @ np.linalg.inv(camera.K).T
+    directions = (directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ R
+    k, m, lam = _pairs_kernel(
+        image_pts.positions,
+        np.nan_to_num(image_pts.arms),
+        image_pts.two_armed,
+        image_pts.arm_lengths,
+        map_pts.positions,
+        np.ascontiguousarray(np.nan_to_num(map_pts.arms) @ R.T),
+        map_pts.two_armed,
+        map_pts.arm_lengths,
+        signatures.order,
+        signatures.keys,
+        signatures.swapped,
+        signatures.loose,
+        np.ascontiguousarray(signatures.directions @ R.T),
+        camera.K,
+        np.cos(np.radians(config.arm_angle_deg)),
+        config.arm_length_ratio * max(camera.fx, camera.fy),
+    )
+    return k, m, lam, np.ascontiguousarray(directions)
+
+
+@numba.njit(cache=True)
+def _direction_at(d: np.ndarray, qx: float, qy: float, K: np.ndarray) -> tuple[float, float]:
+    """Returns the unit image direction at pixel (qx, qy) of a line along camera-frame direction d (3,)."""
+    xn, yn = (qx - K[0, 2]) / K[0, 0], (qy - K[1, 2]) / K[1, 1]
+    vx, vy = K[0, 0] * (d[0] - xn * d[2]), K[1, 1] * (d[1] - yn * d[2])
+    norm = np.hypot(vx, vy)
+    if norm == 0.0:
+        return 0.0, 0.0
+    return vx / norm, vy / norm
+
+
+@numba.njit(cache=True)
+def _ray(
+    k: int,
+    Xm: np.ndarray,
+    ray: np.ndarray,
+    lam_max: float,
+    weight: float,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    voxel: float,
+    dims: np.ndarray,
+    accumulator: np.ndarray,
+    stamp: np.ndarray,
+) -> int:
+    """Votes image point k's weight along ``Xm - lambda ray``, 0 < lambda <= lam_max, inside [lo, hi]."""
+    lam0, lam1 = 0.0, lam_max
+    for axis in range(3):  # the part of the ray inside the region (slab method)
+        d = -ray[axis]
+        if d == 0.0:
+            if Xm[axis] < lo[axis] or Xm[axis] > hi[axis]:
+                return 0
+            continue
+        t0, t1 = (lo[axis] - Xm[axis]) / d, (hi[axis] - Xm[axis]) / d
+        lam0, lam1 = max(lam0, min(t0, t1)), min(lam1, max(t0, t1))
+    if lam1 <= lam0:
+        return 0
+    ny, nz = dims[1], dims[2]
+    for s in range(int(lam0 / (0.5 * voxel)) + 1, int(lam1 / (0.5 * voxel)) + 1):
+        lam = s * 0.5 * voxel
+        ix = min(max(int((Xm[0] - lam * ray[0] - lo[0]) / voxel), 0), dims[0] - 1)
+        iy = min(max(int((Xm[1] - lam * ray[1] - lo[1]) / voxel), 0), ny - 1)
+        iz = min(max(int((Xm[2] - lam * ray[2] - lo[2]) / voxel), 0), nz - 1)
+        v = (ix * ny + iy) * nz + iz
+        if stamp[v] != k:
+            stamp[v] = k
+            accumulator[v] += weight
+    return 1
+
+
+@numba.njit(cache=True)
+def _pairs_kernel(
+    q: np.ndarray,
+    q_arms: np.ndarray,
+    q_two: np.ndarray,
+    q_len: np.ndarray,
+    X: np.ndarray,
+    x_arms: np.ndarray,
+    x_two: np.ndarray,
+    x_len: np.ndarray,
+    order: np.ndarray,
+    keys: np.ndarray,
+    swapped: np.ndarray,
+    loose: np.ndarray,
+    dirs: np.ndarray,
+    K: np.ndarray,
+    cos_tol: float,
+    length_ratio: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    nc = 2 * len(dirs)
+    count = 0
+    cap = 1024
+    out_k = np.empty(cap, np.int64)
+    out_m = np.empty(cap, np.int64)
+    out_lam = np.empty(cap)
+    codes = np.empty((2, nc), np.int64)
+    ncodes = np.zeros(2, np.int64)
+    for k in range(len(q)):
+        arms = 2 if q_two[k] else 1
+        # the cluster directions (either sense) that each image arm can be, at this pixel
+        for a in range(arms):
+            ncodes[a] = 0
+            for c in range(len(dirs)):
+                ux, uy = _direction_at(dirs[c], q[k, 0], q[k, 1], K)
+                dot = ux * q_arms[k, a, 0] + uy * q_arms[k, a, 1]
+                if dot >= cos_tol:
+                    codes[a, ncodes[a]] = 2 * c
+                    ncodes[a] += 1
+                elif -dot >= cos_tol:
+                    codes[a, ncodes[a]] = 2 * c + 1
+                    ncodes[a] += 1
+        for u in range(ncodes[0]):
+            for w in range(ncodes[1] if arms == 2 else 1):
+                if arms == 2:
+                    c0, c1 = codes[0, u], codes[1, w]
+                    if c0 // 2 == c1 // 2:
+                        continue
+                    key = min(c0, c1) * nc + max(c0, c1)
+                    image_swapped = c0 > c1
+                else:
+                    key = nc * nc + codes[0, u]
+                    image_swapped = False
+                first = np.searchsorted(keys, key)
+                last = np.searchsorted(keys, key, side="right")
+                for p in range(first, last):
+                    m = order[p]
+                    # arm lengths in the same order: the map arm seen from lambda looks ~ f len / lambda
+                    if arms == 2:
+                        same = swapped[m] == image_swapped
+                        l0 = x_len[m, 0] if same else x_len[m, 1]
+                        l1 = x_len[m, 1] if same else x_len[m, 0]
+                        far = min(l0 / max(q_len[k, 0], 1e-9), l1 / max(q_len[k, 1], 1e-9))
+                    else:
+                        far = x_len[m, 0] / max(q_len[k, 0], 1e-9)
+                    if count == cap:
+                        cap *= 2
+                        out_k, out_m, out_lam = _grow(out_k, cap), _grow(out_m, cap), _grow(out_lam, cap)
+                    out_k[count], out_m[count], out_lam[count] = k, m, length_ratio * far
+                    count += 1
+        # map points with an arm outside every cluster: the direct test
+        for p in range(len(loose)):
+            m = loose[p]
+            if x_two[m] != q_two[k]:
+                continue
+            ax, ay = _direction_at(x_arms[m, 0], q[k, 0], q[k, 1], K)
+            if arms == 1:
+                if ax * q_arms[k, 0, 0] + ay * q_arms[k, 0, 1] < cos_tol:
+                    continue
+                far = x_len[m, 0] / max(q_len[k, 0], 1e-9)
+            else:
+                bx, by = _direction_at(x_arms[m, 1], q[k, 0], q[k, 1], K)
+                d00 = ax * q_arms[k, 0, 0] + ay * q_arms[k, 0, 1]
+                d11 = bx * q_arms[k, 1, 0] + by * q_arms[k, 1, 1]
+                d01 = ax * q_arms[k, 1, 0] + ay * q_arms[k, 1, 1]
+                d10 = bx * q_arms[k, 0, 0] + by * q_arms[k, 0, 1]
+                if d00 >= cos_tol and d11 >= cos_tol:
+                    far = min(x_len[m, 0] / max(q_len[k, 0], 1e-9), x_len[m, 1] / max(q_len[k, 1], 1e-9))
+                elif d01 >= cos_tol and d10 >= cos_tol:
+                    far = min(x_len[m, 0] / max(q_len[k, 1], 1e-9), x_len[m, 1] / max(q_len[k, 0], 1e-9))
+                else:
+                    continue
+            if count == cap:
+                cap *= 2
+                out_k, out_m, out_lam = _grow(out_k, cap), _grow(out_m, cap), _grow(out_lam, cap)
+            out_k[count], out_m[count], out_lam[count] = k, m, length_ratio * far
+            count += 1
+    return out_k[:count].copy(), out_m[:count].copy(), out_lam[:count].copy()
+
+
+@numba.njit(cache=True)
+def _grow(a: np.ndarray, cap: int) -> np.ndarray:
+    out = np.empty(cap, a.dtype)
+    out[: len(a)] = a
+    return out
+
+
+@numba.njit(cache=True)
+def _vote_rays(
+    k: np.ndarray,
+    m: np.ndarray,
+    lam_max: np.ndarray,
+    direction: np.ndarray,
+    X: np.ndarray,
+    weight: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    voxel: float,
+    dims: np.ndarray,
+    accumulator: np.ndarray,
+    stamp: np.ndarray,
+    first_id: int,
+) -> None:
+    for p in range(len(k)):
+        _ray(
+            first_id + k[p],
+            X[m[p]],
+            direction[k[p]],
+            lam_max[p],
+            weight[k[p]],
+            lo,
+            hi,
+            voxel,
+            dims,
+            accumulator,
+            stamp,
+        )
+
+
+def _peaks(grid: _Grid, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((<= count, 3) world centres, their votes) of the grid's voxels with the most votes, 3
+    voxels apart, after pooling votes over 2 x 2 x 2 neighbourhoods (the rays of one camera meet within a
+    voxel or two)."""
+    votes = grid.votes
+    pooled = votes.copy()
+    for axis in range(3):
+        shifted = np.zeros_like(pooled)
+        index = [slice(None)] * 3
+        index[axis] = slice(1, None)
+        source = [slice(None)] * 3
+        source[axis] = slice(None, -1)
+        shifted[tuple(index)] = pooled[tuple(source)]
+        pooled = np.maximum(pooled, shifted)
+    flat = pooled.ravel()
+    top = np.argpartition(-flat, min(64 * count, len(flat) - 1))[: 64 * count]
+    top = top[np.argsort(-flat[top], kind="stable")]
+    cells = np.stack(np.unravel_index(top[flat[top] > 0], votes.shape), axis=1)
+    kept: list[np.ndarray] = []
+    for cell in cells:  # plateaus of equal maxima: keep one per neighbourhood
+        if all(np.abs(cell - k).max() >= 3 for k in kept):
+            kept.append(cell)
+            if len(kept) == count:
+                break
+    kept_cells = np.array(kept, dtype=np.int64).reshape(-1, 3)
+    centres = grid.lo + (kept_cells + 0.5) * grid.voxel
+    return centres, pooled[tuple(kept_cells.T)] if len(kept_cells) else np.zeros(0)
+
+
+def solve_locally(
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    size_m: float,
+    config: SearchConfig,
+    score_config: ScoreConfig,
+    visible: np.ndarray | None = None,
+) -> tuple[np.ndarray, Score] | None:
+    """Returns (cam_from_world, Score) of the best pose near a start pose whose camera centre is known to
+    within ``size_m``, or None when nothing matches there.
+
+    Rounds: the score's covering pairs at a tolerance spanning the uncertainty (the pixels ``size_m`` moves
+    the median matched point), then the pose minimising their endpoint-to-line distances; the tolerance
+    halves each round down to the score's own.
+    """
+    pose = cam_from_world
+    f = max(camera.fx, camera.fy)
+    tolerance = score_config.distance_px + _pixels_moved(lines3d, camera, pose, size_m)
+    tolerance += f * np.tan(np.radians(config.rotation_slack_deg))  # the rotation candidate's own error
+    for _ in range(config.solve_rounds):
+        loose = replace(score_config, distance_px=tolerance, angle_deg=score_config.angle_deg + 2.0)
+        pairs = score_pose(image, lines3d, camera, pose, loose, visible).pairs
+        moved = pose_from_pairs(image.segments, lines3d, camera, pose, pairs)
+        if moved is None:
+            return None
+        pose = moved
+        if tolerance <= score_config.distance_px:
+            break
+        tolerance = max(0.5 * tolerance, score_config.distance_px)
+    return pose, score_pose(image, lines3d, camera, pose, score_config, visible)
+
+
+def _pixels_moved(lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarray, size_m: float) -> float:
+    """Returns how many pixels a camera shift of ``size_m`` moves a map point at the median depth in view."""
+    depth = transform_depths(lines3d, cam_from_world)
+    depth = depth[depth > 0.1]
+    median = float(np.median(depth)) if len(depth) else 1.0
+    return max(camera.fx, camera.fy) * size_m / median
+
+
+def transform_depths(lines3d: np.ndarray, cam_from_world: np.ndarray) -> np.ndarray:
+    """Returns (2M,) camera-frame depths of both endpoints of (M, 6) world segments."""
+    return lines3d.reshape(-1, 3) @ cam_from_world[2, :3] + cam_from_world[2, 3]
+
+
+def pose_from_pairs(
+    lines2d: np.ndarray,
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    pairs: np.ndarray,
+    iterations: int = 5,
+) -> np.ndarray | None:
+    """Returns the (4, 4) cam_from_world that puts both ends of each paired map segment on its image
+    segment's line (paper eq. "costs"), by Gauss-Newton with Huber weights at 2 px from ``cam_from_world``;
+    None when the pairs cannot fix the pose (fewer than 4, or a singular system)."""
+    if len(pairs) < 4:
+        return None
+    projection = LineProjection.build(
+        line_coefficients(lines2d[pairs[:, 0]]), lines3d[pairs[:, 1]], camera, min_depth_m=1e-3
+    )
+    world_from_cam = invert(cam_from_world)
+    for _ in range(iterations):
+        points = projection.points_cam(world_from_cam[:3, :3], world_from_cam[:3, 3])
+        e, J = projection.evaluate(points, jacobian=True)
+        assert J is not None
+        w = np.sqrt(np.minimum(1.0, 2.0 / np.maximum(np.abs(e), 1e-9)))
+        A, b = J * w[:, None], -e * w
+        H = A.T @ A
+        if np.linalg.cond(H) > 1e12:
+            return None
+        step = np.linalg.solve(H, A.T @ b)
+        delta = np.eye(4)
+        delta[:3, :3] = rotation_from_vector(step[:3])
+        delta[:3, 3] = step[3:]  # gtsam's Pose3 retract to first order (translation in the body frame)
+        world_from_cam = world_from_cam @ delta
+        if np.linalg.norm(step) < 1e-7:
+            break
+    return invert(world_from_cam)
