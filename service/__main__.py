@@ -5,9 +5,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from linereg.cli.serve import add_arguments, config_from_args
-
 from . import logs, server
+from .options import add_arguments, config_from_args
 
 
 def main(argv: list[str] | None = None) -> int:

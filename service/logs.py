@@ -6,6 +6,8 @@ import json
 import logging
 import time
 
+from linereg.io import jsonable
+
 
 class JsonFormatter(logging.Formatter):
     """Formats a record as one JSON object: time, level, logger, message and its ``fields`` extra."""
@@ -21,7 +23,16 @@ class JsonFormatter(logging.Formatter):
         doc.update(getattr(record, "fields", {}) or {})
         if record.exc_info:
             doc["exception"] = self.formatException(record.exc_info)
-        return json.dumps(doc, default=str)
+        return json.dumps({key: _plain(value) for key, value in doc.items()}, allow_nan=False)
+
+
+def _plain(value: object) -> object:
+    """Returns a field as JSON holds it: NaN and inf as null (as every JSON linereg writes), arrays as lists,
+    anything else JSON has no type for as its text."""
+    try:
+        return jsonable(value)
+    except TypeError:
+        return str(value)
 
 
 def configure(level: int = logging.INFO, json_lines: bool = True) -> None:

@@ -8,7 +8,6 @@ work headless and never disturb a caller's figures.
 
 from __future__ import annotations
 
-import json
 import math
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
@@ -113,21 +112,6 @@ def _format(value: Any, spec: str) -> str:
     return format(value, spec) if spec else str(value)
 
 
-def jsonable(obj: Any) -> Any:
-    """Returns ``obj`` with numpy scalars/arrays turned into Python types and NaN/inf into None."""
-    if isinstance(obj, dict):
-        return {str(k): jsonable(v) for k, v in obj.items()}
-    if isinstance(obj, list | tuple):
-        return [jsonable(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return jsonable(obj.tolist())
-    if isinstance(obj, np.generic):
-        obj = obj.item()
-    if isinstance(obj, float) and not math.isfinite(obj):
-        return None
-    return obj
-
-
 def write_atomic(path: str | Path, data: bytes) -> Path:
     """Returns ``path`` after writing ``data`` atomically (``io.write_bytes_atomic``: temp file + rename)."""
     from ..io import write_bytes_atomic
@@ -137,9 +121,11 @@ def write_atomic(path: str | Path, data: bytes) -> Path:
 
 
 def write_json_atomic(path: str | Path, obj: Any) -> Path:
-    """Returns ``path`` after atomically writing ``obj`` as indented JSON (NaN becomes null)."""
-    text = json.dumps(jsonable(obj), indent=1, allow_nan=False)
-    return write_atomic(path, (text + "\n").encode())
+    """Returns ``path`` after ``io.write_json_atomic`` wrote ``obj`` there (the one JSON writer: NaN -> null)."""
+    from ..io import write_json_atomic as write
+
+    write(path, obj)
+    return Path(path)
 
 
 def plot_series(
