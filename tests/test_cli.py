@@ -363,3 +363,39 @@ def test_a_truncated_map_is_one_line_with_worker_processes(small, tmp_path, caps
     argv = localize_args(small, tmp_path, [small / "ok.png"] * 2, line_map=tmp_path / "cut.linemap")
     code, _, err = run(capsys, *argv, "--workers", 2)
     assert code == 2 and "cut.linemap: corrupt or truncated" in err and "Traceback" not in err
+
+
+def test_api_localize_and_service_give_the_same_answer(scene, files, capsys, tmp_path):
+    """One image, one map, one default configuration: the Python API, ``linereg localize`` and
+    ``linereg serve`` + ``linereg query`` answer alike (the wire carries what Registration holds)."""
+    import socket
+
+    from service import Service, ServiceConfig
+
+    folder, images = files
+    image, camera_file, map_file = images[0], folder / "camera.json", folder / "demo.npz"
+    api = localize(cv2.imread(str(image), cv2.IMREAD_UNCHANGED), LineMap.load(map_file), scene.camera)
+    out = tmp_path / "poses.json"
+    code, _, err = run(capsys, "localize", "--map", map_file, "--camera", camera_file, image, "--out", out)
+    assert code == 0, err
+    cli = json.loads(out.read_text())[str(image)]
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    config = ServiceConfig(
+        loader="service.engine:load_map_engine", loader_args=(str(map_file), "demo", None),
+        listen=(endpoint,), workers=1,
+    )  # fmt: skip
+    with Service(config):
+        code, stdout, err = run(
+            capsys, "query", "--connect", endpoint, "--map", "demo", "--camera", camera_file, image,
+            "--timeout", 120,
+        )  # fmt: skip
+    assert code == 0, err
+    served = json.loads(stdout.splitlines()[0])
+    for record in (cli, served):
+        assert record["success"] == api.success and record["reason"] == api.reason
+        np.testing.assert_allclose(record["cam_from_world"], api.cam_from_world, atol=1e-6)
+        assert record["score"] == pytest.approx(api.score, rel=1e-6)
+        assert record["ambiguity"] == pytest.approx(api.ambiguity, rel=1e-6)
+        assert len(record["alternatives"]) == len(api.alternatives)

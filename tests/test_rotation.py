@@ -225,7 +225,8 @@ def test_from_segments_with_noise_and_clutter(camera, rng):
 
 
 def test_paper_scenes():
-    synthetic = pytest.importorskip("linereg.sim.synthetic")
+    from linereg.sim import synthetic
+
     rng = np.random.default_rng(2)
     errors = []
     for _ in range(10):
