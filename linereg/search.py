@@ -418,19 +418,10 @@ def _peaks(grid: _Grid, count: int) -> tuple[np.ndarray, np.ndarray]:
     voxels apart, after pooling votes over 2 x 2 x 2 neighbourhoods (the rays of one camera meet within a
     voxel or two)."""
     votes = grid.votes
-    pooled = votes.copy()
-    for axis in range(3):
-        shifted = np.zeros_like(pooled)
-        index = [slice(None)] * 3
-        index[axis] = slice(1, None)
-        source = [slice(None)] * 3
-        source[axis] = slice(None, -1)
-        shifted[tuple(index)] = pooled[tuple(source)]
-        pooled = np.maximum(pooled, shifted)
-    flat = pooled.ravel()
-    top = np.argpartition(-flat, min(64 * count, len(flat) - 1))[: 64 * count]
-    top = top[np.argsort(-flat[top], kind="stable")]
-    cells = np.stack(np.unravel_index(top[flat[top] > 0], votes.shape), axis=1)
+    top, values = _top_pooled(np.ascontiguousarray(votes), 64 * count)
+    order = np.lexsort((top, -values))  # most votes first, ties in voxel order
+    top, values = top[order], values[order]
+    cells = np.stack(np.unravel_index(top[values > 0], votes.shape), axis=1)
     kept: list[np.ndarray] = []
     for cell in cells:  # plateaus of equal maxima: keep one per neighbourhood
         if all(np.abs(cell - k).max() >= 3 for k in kept):
@@ -439,7 +430,46 @@ def _peaks(grid: _Grid, count: int) -> tuple[np.ndarray, np.ndarray]:
                 break
     kept_cells = np.array(kept, dtype=np.int64).reshape(-1, 3)
     centres = grid.lo + (kept_cells + 0.5) * grid.voxel
-    return centres, pooled[tuple(kept_cells.T)] if len(kept_cells) else np.zeros(0)
+    pooled = {int(t): float(v) for t, v in zip(top, values, strict=True)}
+    flat = [int(np.ravel_multi_index(tuple(cell), votes.shape)) for cell in kept_cells]
+    return centres, np.array([pooled[f] for f in flat])
+
+
+@numba.njit(cache=True, nogil=True)
+def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns ((<= n,) flat indices, their values) of the largest values of ``votes`` pooled by the max over
+    the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), unordered: a min-heap of n slots."""
+    X, Y, Z = votes.shape
+    heap_v = np.full(n, -1.0, np.float64)
+    heap_i = np.full(n, -1, np.int64)
+    for x in range(X):
+        for y in range(Y):
+            for z in range(Z):
+                v = votes[x, y, z]
+                for dx in range(2):
+                    for dy in range(2):
+                        for dz in range(2):
+                            if x >= dx and y >= dy and z >= dz:
+                                w = votes[x - dx, y - dy, z - dz]
+                                if w > v:
+                                    v = w
+                if v <= heap_v[0]:
+                    continue
+                heap_v[0], heap_i[0] = v, (x * Y + y) * Z + z
+                i = 0  # sift down
+                while True:
+                    a, b, s = 2 * i + 1, 2 * i + 2, i
+                    if a < n and heap_v[a] < heap_v[s]:
+                        s = a
+                    if b < n and heap_v[b] < heap_v[s]:
+                        s = b
+                    if s == i:
+                        break
+                    heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
+                    heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
+                    i = s
+    keep = heap_i >= 0
+    return heap_i[keep], heap_v[keep]
 
 
 def solve_locally(
