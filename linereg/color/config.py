@@ -1,0 +1,97 @@
+"""Configuration of colorization: one frozen section per stage, the defaults documented where they are set."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field, fields, is_dataclass, replace
+from typing import Any
+
+from ..errors import InvalidInputError
+
+
+@dataclass(frozen=True)
+class SurfaceConfig:
+    """Local point spacing and surface normal of every point, from point statistics in voxels."""
+
+    # voxel edge (m) of the statistics; 0 = 8 x the cloud's typical spacing (~64 points on a planar patch)
+    voxel_m: float = 0.0
+    # a voxel holding fewer points takes its statistics from the voxel 4x as large round it
+    min_points: int = 6
+
+
+@dataclass(frozen=True)
+class VisibilityConfig:
+    """A depth buffer per photo from the cloud itself: point splats, then a depth test with a tolerance."""
+
+    # splat diameter = this x the local spacing (projected): 1 closes the gaps between neighbouring points
+    splat_scale: float = 1.0
+    # splats are squares of 2^L pixels; L stops here (nearer points than that may leave gaps)
+    max_splat_px: int = 16
+    near_m: float = 0.1  # points nearer to a camera are not seen by it
+    # a point is visible when it lies at most this far behind the buffer's depth: a floor (scan noise,
+    # ~3 sigma of 1 cm), a share of the range (calibration and pose error grow with it) and the depth change
+    # across its own splat on a slanted surface (from the normal)
+    depth_tol_m: float = 0.04
+    depth_tol_rel: float = 0.004
+    # the slope term of the tolerance stops at this tan(incidence): a surface seen more grazing than
+    # atan(max_slope) hides parts of itself rather than let what lies behind an occluder through
+    max_slope: float = 1.5
+    # passes of gap closing after the splats (``depth.fill_gaps``): irregular sampling leaves 1-2 px holes
+    gap_passes: int = 2
+
+
+@dataclass(frozen=True)
+class WeightConfig:
+    """Weight of a photo's colour at a point: viewing angle, range, image border, blur."""
+
+    min_cos: float = 0.15  # surfaces seen more grazing than acos(0.15) = 81 degrees take no colour
+    angle_power: float = 1.0  # weight ~ cos(angle between the viewing ray and the normal) ^ power
+    range_power: float = 2.0  # weight ~ 1 / range ^ power (the pixel footprint on the surface)
+    border_px: float = 16.0  # the weight ramps from 0 at the image border to 1 this far inside
+    blur_power: float = 2.0  # weight ~ (sharpness / sharpest photo's) ^ power
+    # the blend raises the product to this power: > 1 favours the best photo (sharper, less ghosting)
+    blend_power: float = 2.0
+
+
+@dataclass(frozen=True)
+class GainConfig:
+    """Exposure / white balance: one gain per photo and channel, from points several photos see."""
+
+    enabled: bool = True
+    sample_points: int = 200_000  # points of the cloud (evenly strided) the gains are estimated on
+    iterations: int = 30
+    dark: int = 8  # colour values below (noise) or above 255 - dark (clipped) are not used
+    max_gain: float = 4.0  # gains are clipped to [1 / max_gain, max_gain]
+    # weight of the prior "gain = 1" of each photo, in observations (of weight 1, the best photo's)
+    prior_points: float = 500.0
+    # only surfaces seen within acos(min_cos) = 60 degrees of head-on, away from depth edges, count
+    min_cos: float = 0.5
+
+
+@dataclass(frozen=True)
+class ColorizeConfig:
+    """Everything ``colorize`` can be told; ``ColorizeConfig.from_dict`` overrides nested per section."""
+
+    surface: SurfaceConfig = field(default_factory=SurfaceConfig)
+    visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
+    weights: WeightConfig = field(default_factory=WeightConfig)
+    gains: GainConfig = field(default_factory=GainConfig)
+    # points processed at once (memory: ~100 bytes per point, plus every photo's depth buffer)
+    chunk_points: int = 1_000_000
+
+    @classmethod
+    def from_dict(cls, d: dict[str, Any]) -> ColorizeConfig:
+        """Returns the default config with the keys of ``d`` (nested per section) overridden."""
+        return _override(cls(), d, "config")
+
+
+def _override(obj: Any, d: Any, path: str) -> Any:
+    if not isinstance(d, dict):
+        raise InvalidInputError(f"{path} must be a mapping, got {type(d).__name__}")
+    known = {f.name for f in fields(obj)}
+    changes = {}
+    for key, value in d.items():
+        if key not in known:
+            raise InvalidInputError(f"unknown option {path}.{key}; known: {', '.join(sorted(known))}")
+        current = getattr(obj, key)
+        changes[key] = _override(current, value, f"{path}.{key}") if is_dataclass(current) else value
+    return replace(obj, **changes)

@@ -1,0 +1,105 @@
+"""World points into a photo: pixel coordinates (with the lens distortion of the camera) and depth.
+
+Convention (``linereg.camera``): camera frame x right, y down, z forward; pixel (0, 0) is the centre of the
+top-left pixel, so a pixel's area is ``[u - 0.5, u + 0.5) x [v - 0.5, v + 0.5)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import Camera
+
+
+@dataclass(frozen=True)
+class Projection:
+    """The points of a chunk a photo may see: in front of it and inside its image.
+
+    index: (n,) int64 rows of the chunk; u, v: (n,) float32 pixels as in the photo (distorted);
+    z: (n,) float32 depth along the optical axis, m.
+    """
+
+    index: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    z: np.ndarray
+
+
+def project(
+    points: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    near_m: float,
+    rows: np.ndarray | None = None,
+) -> Projection:
+    """Returns the Projection of (P, 3) float64 world points into the photo of ``camera`` at
+    ``cam_from_world`` (4, 4): the points with depth > ``near_m`` whose pixel lies in the image.
+
+    rows: (n,) int64 the only rows to consider (``cull.rows_in_view``), default all; ``index`` counts
+    rows of ``points`` either way.
+    """
+    if rows is None:
+        rows = np.arange(len(points))
+    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    p = points[rows]
+    # column by column, not ``p @ R.T``: BLAS threads of several pool workers would fight over the cores
+    z = p[:, 0] * R[2, 0] + p[:, 1] * R[2, 1] + p[:, 2] * R[2, 2] + t[2]  # float64: UTM-sized coordinates
+    front = np.flatnonzero(z > near_m)
+    p, z, rows = p[front], z[front], rows[front]
+    x = (p[:, 0] * R[0, 0] + p[:, 1] * R[0, 1] + p[:, 2] * R[0, 2] + t[0]) / z
+    y = (p[:, 0] * R[1, 0] + p[:, 1] * R[1, 1] + p[:, 2] * R[1, 2] + t[1]) / z
+    if camera.has_distortion:
+        # a distortion polynomial folds back far outside the image: keep the undistorted field of view first
+        lo, hi = field_of_view(camera)
+        keep = np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
+        rows, x, y, z = rows[keep], x[keep], y[keep], z[keep]
+        x, y = _distort(x, y, camera.dist)
+    u = (camera.fx * x + camera.cx).astype(np.float32)
+    v = (camera.fy * y + camera.cy).astype(np.float32)
+    inside = np.flatnonzero((u >= -0.5) & (u < camera.width - 0.5) & (v >= -0.5) & (v < camera.height - 0.5))
+    return Projection(rows[inside], u[inside], v[inside], z[inside].astype(np.float32))
+
+
+def field_of_view(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((2,), (2,)) the box of normalised coordinates (x / z, y / z) the image can show.
+
+    Pinhole: the image border exactly; with distortion, the border undistorted, 5 % wider.
+    """
+    if not camera.has_distortion:
+        lo = np.array([(-0.5 - camera.cx) / camera.fx, (-0.5 - camera.cy) / camera.fy])
+        hi = np.array(
+            [(camera.width - 0.5 - camera.cx) / camera.fx, (camera.height - 0.5 - camera.cy) / camera.fy]
+        )
+        return lo, hi
+    return _undistorted_bounds(camera)
+
+
+def _distort(x: np.ndarray, y: np.ndarray, dist: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """Returns normalised coordinates through OpenCV's distortion (k1, k2, p1, p2[, k3[, k4, k5, k6]])."""
+    k1, k2, p1, p2, k3, k4, k5, k6 = (*dist, 0.0, 0.0, 0.0, 0.0)[:8]
+    r2 = x * x + y * y
+    radial = (1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1.0 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+    xy = x * y
+    return (
+        x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x * x),
+        y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * xy,
+    )
+
+
+def _undistorted_bounds(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((2,), (2,)) the normalised (x, y) box of the image border undistorted, 5 % wider."""
+    w, h = camera.width, camera.height
+    t = np.linspace(0.0, 1.0, 33)
+    border = np.r_[
+        np.c_[t * w - 0.5, np.full_like(t, -0.5)],
+        np.c_[t * w - 0.5, np.full_like(t, h - 0.5)],
+        np.c_[np.full_like(t, -0.5), t * h - 0.5],
+        np.c_[np.full_like(t, w - 0.5), t * h - 0.5],
+    ]
+    pixels = camera.undistort_points(border)
+    normalised = (pixels - [camera.cx, camera.cy]) / [camera.fx, camera.fy]
+    lo, hi = normalised.min(axis=0), normalised.max(axis=0)
+    margin = 0.05 * (hi - lo)
+    return lo - margin, hi + margin

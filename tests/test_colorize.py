@@ -1,0 +1,254 @@
+"""Colorization (issue 12): a point takes its colour only from photos that see it; streamed files; batch runs."""
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+
+import linereg
+from linereg.cli import main
+from linereg.color.blend import Observation
+from linereg.color.config import ColorizeConfig, GainConfig
+from linereg.color.gains import estimate_gains
+from linereg.geometry import make_cam_from_world
+
+CAMERA = linereg.Camera(fx=300.0, fy=300.0, cx=79.5, cy=59.5, width=160, height=120)
+RED, GREEN, BLUE = (0, 0, 255), (0, 255, 0), (255, 0, 0)  # BGR, as photos are read
+
+
+def grid(x0, x1, y0, y1, z, step=0.05) -> np.ndarray:
+    """Returns (P, 3) points of the rectangle [x0, x1] x [y0, y1] at depth z (a wall facing -z)."""
+    x, y = np.meshgrid(np.arange(x0, x1, step), np.arange(y0, y1, step))
+    return np.c_[x.ravel(), y.ravel(), np.full(x.size, z)]
+
+
+def look_from(centre) -> np.ndarray:
+    """Returns the cam_from_world of a camera at ``centre`` looking along +z (no rotation)."""
+    return make_cam_from_world(np.eye(3), -np.asarray(centre, dtype=np.float64))
+
+
+def paint(camera, cam_from_world, regions) -> np.ndarray:
+    """Returns a BGR photo: each (points, colour) region's points projected and dilated, in order."""
+    image = np.zeros((camera.height, camera.width, 3), np.uint8)
+    for points, colour in regions:
+        cam = points @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+        u = np.rint(camera.fx * cam[:, 0] / cam[:, 2] + camera.cx).astype(int)
+        v = np.rint(camera.fy * cam[:, 1] / cam[:, 2] + camera.cy).astype(int)
+        ok = (u >= 0) & (u < camera.width) & (v >= 0) & (v < camera.height)
+        mask = np.zeros(image.shape[:2], np.uint8)
+        mask[v[ok], u[ok]] = 1
+        image[cv2.dilate(mask, np.ones((3, 3), np.uint8)) > 0] = colour
+    return image
+
+
+@pytest.fixture(scope="module")
+def pillar_scene():
+    """A wall at z = 10 m and a pillar 1 m wide at z = 5 m; photo 0 from the origin paints the pillar red
+    and the wall green; photo 1, 2 m to the right, paints everything blue."""
+    wall = grid(-4, 4, -2, 2, 10.0)
+    pillar = grid(-0.5, 0.5, -2, 2, 5.0)
+    points = np.r_[wall, pillar]
+    poses = np.array([look_from([0, 0, 0]), look_from([2.0, 0, 0])])
+    photos = [paint(CAMERA, poses[0], [(wall, GREEN), (pillar, RED)]),
+              paint(CAMERA, poses[1], [(wall, BLUE), (pillar, BLUE)])]  # fmt: skip
+    return points, len(wall), photos, poses
+
+
+def test_colorize_returns_colours_and_counts_and_flags_unseen_points(pillar_scene):
+    points, _, photos, poses = pillar_scene
+    behind_camera = np.array([[0.0, 0.0, -5.0]])
+    colors, seen = linereg.colorize(np.r_[points, behind_camera], photos, CAMERA, poses)
+    assert colors.shape == (len(points) + 1, 3) and colors.dtype == np.uint8
+    assert seen.shape == (len(points) + 1,) and seen[-1] == 0 and (colors[-1] == 0).all()
+    assert seen.max() == 2 and (seen > 0).mean() > 0.5
+
+
+def test_a_point_behind_the_pillar_never_takes_the_pillar_colour(pillar_scene):
+    points, num_wall, photos, poses = pillar_scene
+    colors, seen = linereg.colorize(points, photos, CAMERA, poses)
+    wall, wall_colors = points[:num_wall], colors[:num_wall]
+    shadow = (np.abs(wall[:, 0]) < 0.9) & (np.abs(wall[:, 1]) < 1.6)  # hidden from photo 0 by the pillar
+    reddish = (wall_colors[:, 0] > 60) & (wall_colors[:, 0] > wall_colors[:, 2])  # RGB: red beats blue
+    assert shadow.sum() > 500 and not reddish[shadow].any()
+    assert (wall_colors[shadow & (seen[:num_wall] > 0), 2] > 150).all()  # photo 1 saw them: blue
+    pillar_colors = colors[num_wall:][seen[num_wall:] > 0]  # photo 1 does not see the pillar
+    assert len(pillar_colors) > 500 and (pillar_colors == [255, 0, 0]).all(axis=1).mean() > 0.95
+
+
+def test_exposure_gains_are_recovered_from_shared_points():
+    rng = np.random.default_rng(0)
+    albedo = rng.uniform(40, 200, size=(20_000, 3))
+    truth = np.array([[1.0, 1.0, 1.0], [0.7, 0.8, 0.9], [1.25, 1.1, 1.0]])
+    observations = []
+    for gain in truth:
+        rows = np.flatnonzero(rng.random(len(albedo)) < 0.8)
+        rgb = (albedo[rows] * gain + rng.normal(0, 2, (len(rows), 3))).astype(np.float32)
+        observations.append(Observation(rows, rgb, np.ones(len(rows), np.float32)))
+    gains = estimate_gains(observations, len(albedo), GainConfig())
+    ratio = (gains / gains[0]) / truth
+    assert np.abs(ratio - 1.0).max() < 0.03
+
+
+def test_bad_inputs_are_named(pillar_scene):
+    points, _, photos, poses = pillar_scene
+    with pytest.raises(linereg.InvalidInputError, match="no points"):
+        linereg.colorize(np.zeros((0, 3)), photos, CAMERA, poses)
+    with pytest.raises(linereg.InvalidInputError, match=r"photos\[1\]: 80x60 px"):
+        linereg.colorize(points, [photos[0], photos[1][::2, ::2]], CAMERA, poses)
+    with pytest.raises(linereg.InvalidInputError, match="2 poses for 1 photos"):
+        linereg.colorize(points, photos[:1], CAMERA, poses)
+
+
+# --- files: chunked PLY / LAS, the CLI, the batch runners ---
+
+
+@pytest.fixture(scope="module")
+def files(pillar_scene, tmp_path_factory):
+    """The pillar scene on disk: cloud.ply (float32), cloud.laz, camera.json, photos, poses.json."""
+    laspy = pytest.importorskip("laspy")
+    points, _, photos, poses = pillar_scene
+    folder = tmp_path_factory.mktemp("colorize")
+    header = (
+        "ply\nformat binary_little_endian 1.0\n"
+        f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n"
+    )
+    (folder / "cloud.ply").write_bytes(header.encode() + points.astype("<f4").tobytes())
+    las_header = laspy.LasHeader(point_format=1, version="1.2")
+    las_header.scales, las_header.offsets = [0.001] * 3, np.floor(points.min(axis=0))
+    las = laspy.LasData(las_header)
+    las.x, las.y, las.z = points.T
+    las.intensity = np.arange(len(points)) % 1000
+    las.write(folder / "cloud.laz")
+    (folder / "camera.json").write_text(json.dumps(CAMERA.to_dict()))
+    records = {}
+    for k, (photo, pose) in enumerate(zip(photos, poses, strict=True)):
+        cv2.imwrite(str(folder / f"photo{k}.png"), photo)
+        records[f"photo{k}.png"] = {"success": True, "cam_from_world": pose.tolist()}
+    records["lost.png"] = {"success": False, "reason": "not localized"}  # skipped: no pose
+    (folder / "poses.json").write_text(json.dumps(records))
+    return folder
+
+
+def read_ply(path) -> np.ndarray:
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    dtype = [("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+             ("photo_count", "<u2")]  # fmt: skip
+    return np.frombuffer(data[end:], dtype=dtype)
+
+
+def colorize_args(files, out, *extra):
+    return ["colorize", files / "cloud.ply", "--poses", files / "poses.json", "--camera", files / "camera.json",
+            "--images", files, "-o", out, *extra]  # fmt: skip
+
+
+def test_cli_colours_a_ply_in_chunks_like_the_api(pillar_scene, files, tmp_path, capsys):
+    points, _, photos, poses = pillar_scene
+    (tmp_path / "small_chunks.json").write_text(json.dumps({"chunk_points": 2500}))
+    argv = colorize_args(files, tmp_path / "out.ply", "--config", tmp_path / "small_chunks.json")
+    assert main([str(a) for a in argv]) == 0
+    rows = read_ply(tmp_path / "out.ply")
+    config = ColorizeConfig(chunk_points=2500)
+    colors, seen = linereg.colorize(
+        points.astype(np.float32).astype(np.float64), photos, CAMERA, poses, config
+    )
+    assert len(rows) == len(points)
+    np.testing.assert_array_equal(rows["photo_count"], seen)
+    np.testing.assert_array_equal(np.c_[rows["red"], rows["green"], rows["blue"]], colors)
+    assert "seen by no photo" in capsys.readouterr().err
+
+
+def test_cli_keeps_las_dimensions_and_adds_rgb_and_count(files, tmp_path):
+    laspy = pytest.importorskip("laspy")
+    argv = colorize_args(files, tmp_path / "out.laz")
+    argv[1] = files / "cloud.laz"
+    assert main([str(a) for a in argv]) == 0
+    source, out = laspy.read(files / "cloud.laz"), laspy.read(tmp_path / "out.laz")
+    np.testing.assert_array_equal(out.X, source.X)
+    np.testing.assert_array_equal(out.intensity, source.intensity)
+    count = np.asarray(out["photo_count"])
+    assert (count > 0).any() and (count == 0).any()
+    assert (np.asarray(out.red)[count == 0] == 0).all() and (np.asarray(out.blue)[count > 0] > 0).any()
+
+
+@pytest.mark.parametrize(
+    ("case", "named"),
+    [
+        ("missing photo", "poses.json"),
+        ("photo size", "photo1.png"),
+        ("empty cloud", "empty.ply"),
+        ("missing folder", "nowhere"),
+    ],
+)
+def test_cli_bad_input_is_one_line_naming_the_file_and_writes_nothing(files, tmp_path, capsys, case, named):
+    argv = colorize_args(files, tmp_path / "out.ply")
+    if case == "missing photo":
+        argv[argv.index("--images") + 1] = tmp_path  # the photos are not here
+        (tmp_path / "poses.json").write_text((files / "poses.json").read_text())
+        argv[argv.index("--poses") + 1] = tmp_path / "poses.json"
+    elif case == "photo size":
+        for name in ("photo0.png", "photo1.png"):
+            image = cv2.imread(str(files / name))
+            cv2.imwrite(str(tmp_path / name), image if name == "photo0.png" else image[::2, ::2])
+        argv[argv.index("--images") + 1] = tmp_path
+    elif case == "empty cloud":
+        header = "ply\nformat binary_little_endian 1.0\nelement vertex 0\nproperty float x\n"
+        (tmp_path / "empty.ply").write_text(header + "property float y\nproperty float z\nend_header\n")
+        argv[1] = tmp_path / "empty.ply"
+    else:
+        argv[argv.index("-o") + 1] = tmp_path / "nowhere" / "out.ply"
+    code = main([str(a) for a in argv])
+    err = capsys.readouterr().err
+    assert code == 2 and named in err and "Traceback" not in err, err
+    assert not (tmp_path / "out.ply").exists()
+    assert not [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_a_failing_run_leaves_no_half_written_file(files, tmp_path, monkeypatch):
+    import linereg.color.engine as engine
+
+    calls = []
+
+    def dies(shared, item):
+        if calls:
+            raise KeyboardInterrupt  # killed in the middle of the colour pass
+        calls.append(item)
+        return real(shared, item)
+
+    real = engine.colour_task
+    monkeypatch.setattr(engine, "colour_task", dies)
+    (tmp_path / "c.json").write_text(json.dumps({"chunk_points": 2000}))
+    argv = colorize_args(files, tmp_path / "out.ply", "--config", tmp_path / "c.json")
+    assert main([str(a) for a in argv]) == 130  # the CLI's answer to an interrupt
+    assert list(tmp_path.iterdir()) == [tmp_path / "c.json"]
+
+
+def test_colorize_on_a_dask_cluster_gives_the_local_answer(files, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from linereg import batch
+    from linereg.colorization import colorize_file, read_localized_photos
+
+    photos = read_localized_photos(files / "poses.json", files / "camera.json", files)
+    config = ColorizeConfig(chunk_points=3000)
+    local = colorize_file(files / "cloud.ply", tmp_path / "local.ply", photos, config)
+    with distributed.LocalCluster(
+        n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None
+    ) as cluster:
+        with batch.runner(scheduler=cluster.scheduler_address) as runner:
+            assert runner.workers == 2
+            remote = colorize_file(files / "cloud.ply", tmp_path / "dask.ply", photos, config, runner)
+    np.testing.assert_array_equal(local, remote)
+    assert (tmp_path / "local.ply").read_bytes() == (tmp_path / "dask.ply").read_bytes()
+
+
+def test_process_pool_gives_the_inline_answer(files, tmp_path):
+    from linereg import batch
+    from linereg.colorization import colorize_file, read_localized_photos
+
+    photos = read_localized_photos(files / "poses.json", files / "camera.json", files)
+    config = ColorizeConfig(chunk_points=3000)
+    colorize_file(files / "cloud.ply", tmp_path / "a.ply", photos, config)
+    with batch.runner(workers=2) as runner:
+        colorize_file(files / "cloud.ply", tmp_path / "b.ply", photos, config, runner)
+    assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
