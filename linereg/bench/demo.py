@@ -107,6 +107,7 @@ def summarize(seeds: list[dict[str, Any]]) -> dict[str, Any]:
     stats["whole_s"] = max(s["whole_s"] for s in seeds)  # the slowest seed is what a user may meet
     verdict = {
         "success_rate": stats["success_rate"] >= TARGETS["success_rate"],
+        "wrong_claimed": stats["wrong_claimed"] == 0,
         "rotation_deg_median": bool(stats["rotation_deg_median"] <= TARGETS["rotation_deg_median"]),
         "position_m_median": bool(stats["position_m_median"] <= TARGETS["position_m_median"]),
         "whole_s": stats["whole_s"] <= TARGETS["whole_s"],
@@ -155,6 +156,7 @@ def print_results(results: dict[str, Any]) -> None:
     stats, met = results["summary"]["stats"], results["summary"]["targets_met"]
     lines = (
         ("localized", f"{stats['num_success']}/{stats['n']}", "all", met["success_rate"]),
+        ("wrong claimed", f"{stats['wrong_claimed']}/{stats['n']}", "0", met["wrong_claimed"]),
         ("median R_e", _value(stats["rotation_deg_median"], "deg"), "<= 0.5 deg", met["rotation_deg_median"]),
         ("median pos err", _value(stats["position_m_median"], "m"), "<= 0.2 m", met["position_m_median"]),
         ("whole demo", f"{stats['whole_s']:.1f} s", "<= 60 s", met["whole_s"]),

@@ -336,7 +336,9 @@ def run(args: argparse.Namespace) -> int:
         print("\nat the true pose:")
         print(report.format_table(rows, STAGE_COLUMNS))
     done = sum(r["success"] for r in records)
+    wrong = sum(bool(r.get("reported")) and not r["success"] for r in records)
     print(f"localized {done}/{len(records)} within {bounds[0]:g} deg / {bounds[1]:g} m of the ground truth")
+    print(f"wrong but claimed: {wrong}/{len(records)} (reported as success, outside those bounds)")
     results = {
         "benchmark": "real",
         "data": str(data),

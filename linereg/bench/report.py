@@ -56,8 +56,9 @@ def trial_record(
 def cell_stats(trials: Sequence[dict[str, Any]]) -> dict[str, Any]:
     """Returns success rate, pose errors over the successful trials, runtime over all trials.
 
-    Keys: n, num_success, success_rate, rotation_deg_median/_rmse, rel_translation_median/_rmse,
-    position_m_median (NaN without successes), time_ms_median, time_ms_p95.
+    Keys: n, num_success, success_rate, wrong_claimed (a pose reported as success outside the criterion:
+    the worst outcome, shown beside every success rate), rotation_deg_median/_rmse,
+    rel_translation_median/_rmse, position_m_median (NaN without successes), time_ms_median, time_ms_p95.
     """
     ok = [t for t in trials if t["success"]]
     rot = np.array([t["rotation_deg"] for t in ok])
@@ -68,6 +69,7 @@ def cell_stats(trials: Sequence[dict[str, Any]]) -> dict[str, Any]:
         "n": len(trials),
         "num_success": len(ok),
         "success_rate": len(ok) / len(trials) if trials else math.nan,
+        "wrong_claimed": sum(1 for t in trials if t.get("reported") and not t["success"]),
         "rotation_deg_median": _median(rot),
         "rotation_deg_rmse": _rmse(rot),
         "rel_translation_median": _median(rel),

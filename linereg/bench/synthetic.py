@@ -198,6 +198,7 @@ TABLE_COLUMNS = (
     ("method", "method", ""),
     ("n", "n", "d"),
     ("success_rate", "success", ".0%"),
+    ("wrong_claimed", "wrong claimed", "d"),
     ("rotation_deg_median", "rot med°", ".2f"),
     ("rotation_deg_rmse", "rot rmse°", ".2f"),
     ("rel_translation_median", "|te|/|t| med", ".4f"),
