@@ -20,6 +20,7 @@ __all__ = [
     "Prior",
     "RegisterConfig",
     "Registration",
+    "colorize",
     "localize",
     "localize_segments",
     "register",
@@ -33,6 +34,7 @@ _LAZY = {
     "localize_segments": "linereg.localization",
     "Prior": "linereg.priors",
     "LineMap": "linereg.map.linemap",
+    "colorize": "linereg.colorization",
 }
 
 

@@ -417,3 +417,277 @@ def write_tum(path: str | os.PathLike, timestamps: Sequence[float], cam_from_wor
         lines.append(" ".join(f"{v:.9f}" for v in (float(stamp), *world_from_cam[:3, 3], *q)))
     header = "# timestamp tx ty tz qx qy qz qw (world_from_cam)"
     write_bytes_atomic(path, "\n".join([header, *lines, ""]).encode("utf-8"))
+
+
+# ---------------------------------------------------------------------------------------------- streamed clouds
+
+_LAS_WITH_RGB = {
+    0: 2,
+    1: 3,
+    2: 2,
+    3: 3,
+    4: 5,
+    5: 5,
+    6: 7,
+    7: 7,
+    8: 8,
+    9: 10,
+    10: 10,
+}  # point format -> with RGB
+_PLY_DTYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2"}
+_PLY_DTYPES |= {"ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4"}
+_PLY_DTYPES |= {"float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+class CloudReader:
+    """Random access to a point cloud file in chunks, without holding it whole (``open_cloud``).
+
+    LAS / LAZ through laspy (LAZ seeks by its chunk table), binary PLY memory-mapped; other formats
+    (.pcd, .xyz / .txt, .e57, ASCII PLY) are read whole on open. Rows keep the file's order, NaN included.
+    """
+
+    def __init__(self, path: str | os.PathLike) -> None:
+        self.path = Path(path)
+        suffix = self.path.suffix.lower()
+        if suffix not in CLOUD_SUFFIXES:
+            raise FileFormatError(
+                f"{self.path}: unsupported point cloud format {suffix!r}; use {', '.join(CLOUD_SUFFIXES)}"
+            )
+        _check_readable(self.path)
+        self.las: Any = None  # laspy reader (LAS / LAZ)
+        self._ply: np.ndarray | None = None  # memory-mapped vertex records (binary PLY)
+        self._points: np.ndarray | None = None  # everything else, read whole
+        self._position = 0
+        try:
+            self.num_points = self._open(suffix)
+        except FileFormatError:
+            raise
+        except Exception as e:  # each library has its own exceptions for a corrupt file
+            raise FileFormatError(f"{self.path}: cannot read point cloud: {e}") from None
+        if self.num_points == 0:
+            raise FileFormatError(f"{self.path}: the point cloud holds no points (empty or corrupt file)")
+
+    def _open(self, suffix: str) -> int:
+        if suffix in (".las", ".laz"):
+            import laspy
+
+            if suffix == ".laz" and not laspy.LazBackend.detect_available():
+                raise FileFormatError(
+                    f"{self.path}: reading .laz needs a LAZ backend: pip install 'laspy[lazrs]'"
+                )
+            self.las = laspy.open(self.path)
+            return int(self.las.header.point_count)
+        layout = _ply_layout(self.path) if suffix == ".ply" else None
+        if layout is not None:
+            dtype, offset, count = layout
+            self._ply = np.memmap(self.path, dtype=dtype, mode="r", offset=offset, shape=(count,))
+            return count
+        self._points = read_cloud(self.path)
+        return len(self._points)
+
+    @property
+    def ply_float32(self) -> bool:
+        """Whether the file is a PLY with float32 coordinates (a PLY written from it keeps them float32)."""
+        return self._ply is not None and self._ply.dtype["x"] == np.float32
+
+    def read(self, start: int, stop: int) -> np.ndarray:
+        """Returns the (stop - start, 3) float64 points of rows [start, stop)."""
+        if self.las is not None:
+            records = self.read_records(start, stop)
+            return np.stack([np.asarray(records.x), np.asarray(records.y), np.asarray(records.z)], axis=1)
+        if self._ply is not None:
+            rows = self._ply[start:stop]
+            return np.stack([rows["x"], rows["y"], rows["z"]], axis=1).astype(np.float64)
+        assert self._points is not None
+        return self._points[start:stop]
+
+    def read_records(self, start: int, stop: int) -> Any:
+        """Returns laspy's point records of rows [start, stop) (LAS / LAZ only), seeking only when needed."""
+        if start != self._position:
+            self.las.seek(start)
+        records = self.las.read_points(stop - start)
+        if len(records) != stop - start:
+            raise FileFormatError(
+                f"{self.path}: truncated: {len(records)} of {stop - start} points at row {start}"
+            )
+        self._position = stop
+        return records
+
+    def close(self) -> None:
+        if self.las is not None:
+            self.las.close()
+        self._ply = None
+
+    def __enter__(self) -> CloudReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_cloud(path: str | os.PathLike) -> CloudReader:
+    """Returns a CloudReader of a point cloud file (checked: readable, known format, at least one point)."""
+    return CloudReader(path)
+
+
+def _ply_layout(path: Path) -> tuple[np.dtype, int, int] | None:
+    """Returns (record dtype, body offset, vertex count) of a binary PLY whose first element is the vertices
+    with scalar properties; None for any other PLY (read whole instead)."""
+    count = _ply_vertex_count(path)  # checks x, y, z and that a binary body is long enough
+    with open(path, "rb") as f:
+        lines: list[list[str]] = []
+        while not lines or lines[-1] != ["end_header"]:
+            lines.append(f.readline().decode("ascii", "replace").split())
+        offset = f.tell()
+    order = {"binary_little_endian": "<", "binary_big_endian": ">"}.get(
+        lines[1][1] if len(lines[1]) > 1 else ""
+    )
+    elements = [w for w in lines if w[:1] == ["element"]]
+    if order is None or not elements or elements[0][1] != "vertex":
+        return None
+    fields = []
+    for words in lines[lines.index(elements[0]) + 1 :]:
+        if words[:1] != ["property"]:
+            break
+        if words[1] == "list" or words[1] not in _PLY_DTYPES:
+            return None
+        fields.append((words[2], order + _PLY_DTYPES[words[1]]))
+    return np.dtype(fields), offset, count
+
+
+class ColoredCloudWriter:
+    """Writes a coloured copy of a cloud chunk by chunk, atomically: .ply (``red green blue`` uchar and
+    ``photo_count`` ushort) or .las / .laz (RGB, 16 bit, and a ``photo_count`` extra dimension).
+
+    ``photo_count`` is the number of photos that coloured the point; 0 flags a point no photo saw (its RGB is
+    0, not a colour). The file appears under its name only when the ``with`` block ends without an error;
+    before, it is a hidden temporary file in the same folder, removed on error. From a LAS / LAZ ``source``
+    every dimension, the scales, offsets and VLRs (the CRS) are kept; otherwise coordinates are stored
+    with 1 mm resolution (LAS) or as the source's float type (PLY).
+    """
+
+    def __init__(
+        self, path: str | os.PathLike, num_points: int, source: CloudReader | None = None, bounds: Any = None
+    ) -> None:
+        self.path, self.num_points, self.source, self.written = Path(path), int(num_points), source, 0
+        suffix = self.path.suffix.lower()
+        if suffix not in (".ply", ".las", ".laz"):
+            raise InvalidInputError(f"{self.path}: colourized clouds are written as .ply, .las or .laz")
+        fd, tmp = tempfile.mkstemp(dir=self.path.parent, prefix=f".{self.path.name}.", suffix=".tmp")
+        os.close(fd)
+        os.chmod(tmp, 0o666 & ~_umask())
+        self._tmp = Path(tmp)
+        self._las: Any = None
+        self._file: Any = None
+        try:
+            if suffix == ".ply":
+                self._start_ply(source is not None and source.ply_float32)
+            else:
+                self._start_las(suffix == ".laz", bounds)
+        except BaseException:
+            self._discard()
+            raise
+
+    def _start_ply(self, float32: bool) -> None:
+        coord = "float" if float32 else "double"
+        self._ply_dtype = np.dtype([(c, "<f4" if float32 else "<f8") for c in "xyz"]
+                                   + [(c, "u1") for c in ("red", "green", "blue")] + [("photo_count", "<u2")])  # fmt: skip
+        header = [
+            "ply",
+            "format binary_little_endian 1.0",
+            "comment linereg colorize",
+            f"element vertex {self.num_points}",
+        ]
+        header += [f"property {coord} {c}" for c in "xyz"] + [
+            f"property uchar {c}" for c in ("red", "green", "blue")
+        ]
+        header += ["property ushort photo_count", "end_header", ""]
+        self._file = open(self._tmp, "wb")  # closed by commit / _discard
+        self._file.write("\n".join(header).encode("ascii"))
+
+    def _start_las(self, compress: bool, bounds: Any) -> None:
+        import laspy
+
+        src = self.source.las.header if self.source is not None and self.source.las is not None else None
+        if src is not None:
+            header = laspy.LasHeader(point_format=_LAS_WITH_RGB[src.point_format.id], version=src.version)
+            for dim in src.point_format.extra_dimensions:
+                header.add_extra_dim(
+                    laspy.ExtraBytesParams(name=dim.name, type=dim.dtype, description=dim.description)
+                )
+            header.offsets, header.scales = src.offsets, src.scales
+            header.vlrs.extend(v for v in src.vlrs if not isinstance(v, laspy.vlrs.known.ExtraBytesVlr))
+        else:
+            header = laspy.LasHeader(point_format=7, version="1.4")
+            lo, hi = (np.zeros(3), np.zeros(3)) if bounds is None else np.asarray(bounds, dtype=np.float64)
+            header.offsets = np.floor(lo)
+            # 1 mm, coarser only if the extent would overflow LAS's 32-bit integers
+            header.scales = np.full(3, max(0.001, float(np.max(hi - np.floor(lo))) / 2.0e9))
+        if "photo_count" not in header.point_format.dimension_names:
+            header.add_extra_dim(laspy.ExtraBytesParams(name="photo_count", type=np.uint16,
+                                                        description="photos that coloured it; 0: none"))  # fmt: skip
+        self._las_header = header
+        self._las = laspy.open(self._tmp, mode="w", header=header, do_compress=compress)
+
+    def write(
+        self, points: np.ndarray, rgb: np.ndarray, photo_count: np.ndarray, records: Any = None
+    ) -> None:
+        """Appends n points: (n, 3) float64 world, (n, 3) uint8 RGB, (n,) photo counts; ``records``: the
+        source's laspy records of the same rows (their other dimensions are kept)."""
+        n = len(points)
+        if self._file is not None:
+            rows = np.empty(n, dtype=self._ply_dtype)
+            for i, c in enumerate("xyz"):
+                rows[c] = points[:, i]
+            for i, c in enumerate(("red", "green", "blue")):
+                rows[c] = rgb[:, i]
+            rows["photo_count"] = np.minimum(photo_count, 65535)
+            self._file.write(rows.tobytes())
+        else:
+            self._write_las(points, rgb, photo_count, records)
+        self.written += n
+
+    def _write_las(self, points: np.ndarray, rgb: np.ndarray, photo_count: np.ndarray, records: Any) -> None:
+        import laspy
+
+        out = laspy.ScaleAwarePointRecord.zeros(len(points), header=self._las_header)
+        if records is not None:  # same scales and offsets: the integer coordinates copy exactly
+            for name in records.point_format.dimension_names:
+                if name in out.point_format.dimension_names:
+                    out[name] = records[name]
+        else:
+            out.x, out.y, out.z = points[:, 0], points[:, 1], points[:, 2]
+        for i, c in enumerate(("red", "green", "blue")):
+            out[c] = rgb[:, i].astype(np.uint16) * 257  # 8 -> 16 bit, 255 -> 65535
+        out["photo_count"] = np.minimum(photo_count, 65535).astype(np.uint16)
+        self._las.write_points(out)
+
+    def commit(self) -> None:
+        """Closes the file and moves it to its name (every point must have been written)."""
+        if self.written != self.num_points:
+            raise InvalidInputError(f"{self.path}: {self.written} of {self.num_points} points written")
+        if self._file is not None:
+            self._file.flush()
+            os.fsync(self._file.fileno())
+            self._file.close()
+        else:
+            self._las.close()
+        os.replace(self._tmp, self.path)
+
+    def _discard(self) -> None:
+        for handle in (self._file, self._las):
+            if handle is not None:
+                try:
+                    handle.close()
+                except Exception:  # a half-written LAZ may not close cleanly; it is deleted anyway
+                    pass
+        self._tmp.unlink(missing_ok=True)
+
+    def __enter__(self) -> ColoredCloudWriter:
+        return self
+
+    def __exit__(self, exc_type: Any, *exc: object) -> None:
+        if exc_type is None:
+            self.commit()
+        else:
+            self._discard()

@@ -3,10 +3,13 @@
 Example:
   linereg localize --map site.linemap --camera cameras.json photos/*.png --out poses.json --tum poses.tum
 
-A process pool (each worker loads the map once) localizes the images; results are saved atomically every
-few seconds, so a killed batch loses nothing and ``--resume`` skips what is done. An image that cannot be
-used (unreadable, corrupt, another size than its camera) does not stop the batch: it is recorded as
-failed, named on stderr, and the command exits with 2 at the end.
+A local process pool (``--workers``; each worker loads the map once) or an existing Dask cluster
+(``--scheduler ADDRESS``, needs ``pip install 'linereg[cluster]'``; workers must reach the map and images
+under the same paths) localizes the images. Each result is saved atomically as it arrives, one small file
+per image in a hidden folder beside ``--out`` (``.poses.json.parts/``), so a killed batch loses nothing:
+``--resume`` skips every image already in ``--out`` or in that folder and localizes only the rest. An
+image that cannot be used (unreadable, corrupt, another size than its camera) does not stop the batch:
+it is recorded as failed, named on stderr, and the command exits with 2 at the end.
 
 Each JSON record has a ``timestamp``: the image's time in the ``--tum`` file (the file stems when every
 stem is a number, as in TUM datasets, else the image's position on the command line: 0, 1, 2, ...).
@@ -15,22 +18,25 @@ stem is a number, as in TUM datasets, else the image's position on the command l
 from __future__ import annotations
 
 import argparse
+import hashlib
 import logging
 import os
 import re
+import shutil
 import sys
-import time
+import threading
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from pathlib import Path
 
+from .. import batch
 from ..errors import InvalidInputError, LineregError
 from . import check_output_dir, check_output_file, description
 from .progress import Progress
 
 log = logging.getLogger(__name__)
 _worker_state: dict = {}
+_worker_lock = threading.Lock()  # Dask workers may run tasks in threads: the map is loaded once
 _NUMBER = re.compile(r"\d+(\.\d+)?")  # a file stem that is a timestamp: 1305031102.175304
 
 
@@ -49,8 +55,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", type=Path, default=Path("poses.json"), help="JSON results (default poses.json)")
     p.add_argument("--tum", type=Path, help="also write the successful poses as a TUM trajectory")
     p.add_argument("--overlay", type=Path, metavar="DIR", help="write one overlay PNG per image here")
-    p.add_argument("--workers", type=int, default=1, help="worker processes (default 1)")
-    p.add_argument("--resume", action="store_true", help="skip images already in --out")
+    p.add_argument("--workers", type=int, default=1, help="local worker processes (default 1)")
+    p.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run on this dask.distributed scheduler (tcp://host:8786) instead of local processes",
+    )
+    p.add_argument("--resume", action="store_true", help="skip images already done (in --out or saved)")
     p.add_argument(
         "--config", type=Path, help="JSON file of registration overrides, nested per section (default: none)"
     )
@@ -82,29 +93,35 @@ def run(args: argparse.Namespace) -> int:
     for path, record in results.items():
         if path in stamps:
             record["timestamp"] = stamps[path]
+    parts = ResultParts(args.out)
+    if args.resume:
+        results |= {path: record | {"timestamp": stamps.get(path)} for path, record in parts.load().items()}
+    else:
+        parts.clear()
     jobs = [j for j in jobs if j[0] not in results]
     overlay_dir = str(args.overlay) if args.overlay else None
-    init = (str(args.map), overlay_dir, str(args.config) if args.config else None)
-    last_save = time.monotonic()
-    with Progress(len(jobs), "localize", log_steps=True) as progress, _executor(args.workers, init) as pool:
+    shared = (str(args.map), overlay_dir, str(args.config) if args.config else None)
+    with (
+        Progress(len(jobs), "localize", log_steps=True) as progress,
+        batch.runner(args.workers, args.scheduler) as runner,
+    ):
         try:
-            for path, record in pool.map(_localize_one, jobs):
+            for _, (path, record) in runner.unordered(_localize_task, shared, jobs):
                 results[path] = record | {"timestamp": stamps[path]}
+                parts.write(path, results[path])  # atomic, per image: a killed batch resumes here
                 progress.update(1, f"{Path(path).name}: {'ok' if record['success'] else 'failed'}")
-                if time.monotonic() - last_save > 5.0:  # periodic atomic save: a killed batch resumes here
-                    io.write_json_atomic(args.out, results)
-                    last_save = time.monotonic()
-        except BrokenProcessPool:  # a worker could not load the map, or died (out of memory, a crash)
-            if results:
-                io.write_json_atomic(args.out, results)
+        except BrokenProcessPool:  # a worker died (out of memory, a crash)
             raise LineregError(
-                f"a worker process died ({len(results)} results saved in {args.out}); "
+                f"a worker process died ({len(results)} results saved beside {args.out}); "
                 "see the messages above, then run again with --resume"
             ) from None
+    order = {path: k for k, path in enumerate(stamps)}
+    results = dict(sorted(results.items(), key=lambda item: order.get(item[0], len(order))))
     io.write_json_atomic(args.out, results)
     if args.tum:
         ok = [r for r in results.values() if r["success"] and r.get("timestamp") is not None]
         io.write_tum(args.tum, [r["timestamp"] for r in ok], [r["cam_from_world"] for r in ok])
+    parts.clear()  # everything is in --out now
     done = sum(r["success"] for r in results.values())
     print(f"localized {done}/{len(results)} images -> {args.out}", file=sys.stderr)
     bad = {p: r["reason"] for p, r in results.items() if r.get("input_error")}
@@ -124,26 +141,33 @@ def tum_timestamps(images: Sequence[Path]) -> list[float]:
     return [float(k) for k in range(len(images))]
 
 
-class _InlineExecutor:
-    """The same interface as a process pool, in this process (workers=1: no pickling, easy debugging)."""
+class ResultParts:
+    """One JSON file per localized image, written atomically, in ``.<out name>.parts/`` beside ``out``."""
 
-    def __init__(self, init: tuple) -> None:
-        _init_worker(*init)
+    def __init__(self, out: Path) -> None:
+        self.folder = out.parent / f".{out.name}.parts"
 
-    def map(self, fn, items):
-        return map(fn, items)
+    def write(self, image: str, record: dict) -> None:
+        from .. import io
 
-    def __enter__(self):
-        return self
+        name = hashlib.sha1(image.encode("utf-8")).hexdigest()[:20] + ".json"
+        io.write_json_atomic(self.folder / name, {"image": image, "record": record})
 
-    def __exit__(self, *exc) -> None:
-        return None
+    def load(self) -> dict[str, dict]:
+        """Returns image -> record of every saved part (a part that cannot be read is done again)."""
+        from .. import io
 
+        out = {}
+        for path in sorted(self.folder.glob("*.json")) if self.folder.is_dir() else []:
+            try:
+                part = io.read_json(path)
+                out[str(part["image"])] = dict(part["record"])
+            except (LineregError, KeyError, TypeError, ValueError):
+                log.warning("%s: unreadable saved result, the image is localized again", path)
+        return out
 
-def _executor(workers: int, init: tuple):
-    if workers == 1:
-        return _InlineExecutor(init)
-    return ProcessPoolExecutor(workers, initializer=_init_pool_worker, initargs=init)
+    def clear(self) -> None:
+        shutil.rmtree(self.folder, ignore_errors=True)
 
 
 def _init_worker(map_path: str, overlay_dir: str | None, config_path: str | None) -> None:
@@ -156,13 +180,17 @@ def _init_worker(map_path: str, overlay_dir: str | None, config_path: str | None
     _worker_state["overlay_dir"] = overlay_dir
 
 
-def _init_pool_worker(*init) -> None:
-    """``_init_worker`` in a pool process: a user error is raised by the first job, one line in the parent
-    (an initializer's exception would print a traceback per worker and break the pool)."""
-    try:
-        _init_worker(*init)
-    except LineregError as e:
-        _worker_state["error"] = e
+def _localize_task(shared: tuple, job: tuple) -> tuple[str, dict]:
+    """A batch task (``linereg.batch``): loads the map on a worker's first task, then localizes one image.
+
+    A map that cannot be loaded raises here, and the runner hands the error to the command (one line).
+    """
+    with _worker_lock:
+        if _worker_state.get("shared") != shared:
+            _worker_state.clear()
+            _init_worker(*shared)
+            _worker_state["shared"] = shared
+    return _localize_one(job)
 
 
 def _localize_one(job: tuple) -> tuple[str, dict]:
@@ -172,8 +200,6 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
     from ..overlay import draw_overlay
 
     path, camera = job
-    if "error" in _worker_state:
-        raise _worker_state["error"]
     line_map = _worker_state["map"]
     try:
         image = io.read_image(path)
