@@ -283,7 +283,10 @@ class PointsConfig:
 class SearchConfig:
     """The search over camera centres (``search.py``): rays from matched points vote in a voxel grid."""
 
-    voxels: int = 2_000_000  # the search region is cut into about this many cubic voxels for coarse votes
+    # the search region is cut into about this many cubic voxels for coarse votes (2 x 96 MB): at 2 M (1.7 m
+    # voxels on the demo's 60 m block) shifts of a window lattice outvoted the true camera centre, whose
+    # coarse peak was then never solved (docs/measurements.md)
+    voxels: int = 8_000_000
     coarse_peaks: int = 8  # ... the best of each rotation are voted again on a finer grid:
     fine_voxels: int = 16  # ... of this many voxels a side
     fine_span: float = 3.0  # ... spanning this many coarse voxels each way

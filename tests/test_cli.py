@@ -130,11 +130,6 @@ def test_localize_writes_json_tum_and_overlays(scene, files, capsys, tmp_path):
         assert stat.S_IMODE(written.stat().st_mode) == mode, written
 
 
-@pytest.mark.xfail(
-    reason="issue 9 open: the search misses the true position of demo photo 0 and claims a pose turned "
-    "180 deg, 38 m away (the truth scores 40 % higher but is never visited)",
-    strict=False,
-)
 def test_demo_photos_never_claim_a_wrong_pose(scene, files):
     folder, _ = files
     line_map = LineMap.load(folder / "demo.npz")
