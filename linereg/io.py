@@ -419,6 +419,39 @@ def write_tum(path: str | os.PathLike, timestamps: Sequence[float], cam_from_wor
     write_bytes_atomic(path, "\n".join([header, *lines, ""]).encode("utf-8"))
 
 
+def read_tum(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((K,) float64 timestamps s, (K, 4, 4) float64 cam_from_world) of a TUM trajectory file
+    (``timestamp tx ty tz qx qy qz qw`` of world_from_cam per line, ``#`` comments), in time order."""
+    from scipy.spatial.transform import Rotation
+
+    from .geometry import invert
+
+    path = Path(path)
+    _check_readable(path)
+    rows = []
+    for number, line in enumerate(_read_text_file(path).splitlines(), 1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        try:
+            values = [float(v) for v in line.replace(",", " ").split()]
+        except ValueError:
+            raise FileFormatError(f"{path}:{number}: not numbers: {line[:60]!r}") from None
+        if len(values) != 8 or not all(math.isfinite(v) for v in values):
+            raise FileFormatError(f"{path}:{number}: a TUM line is 8 finite numbers, got {line[:60]!r}")
+        rows.append(values)
+    if not rows:
+        raise FileFormatError(f"{path}: no poses")
+    data = np.array(sorted(rows))
+    quat = data[:, 4:8]
+    if (np.linalg.norm(quat, axis=1) < 1e-9).any():
+        raise FileFormatError(f"{path}: a quaternion is zero")
+    world_from_cam = np.tile(np.eye(4), (len(data), 1, 1))
+    world_from_cam[:, :3, :3] = Rotation.from_quat(quat).as_matrix()  # scipy: (x, y, z, w), TUM's order
+    world_from_cam[:, :3, 3] = data[:, 1:4]
+    return data[:, 0], np.array([invert(T) for T in world_from_cam])
+
+
 # ---------------------------------------------------------------------------------------------- streamed clouds
 
 _LAS_WITH_RGB = {

@@ -1,0 +1,486 @@
+"""``localize_sequence``: many frames of one camera, with optional odometry, smoothed in ONE GTSAM graph.
+
+1. Each frame alone (``alone``): refined from its prediction (odometry from the last fix, else constant
+   velocity); failing that, registered near the prediction (a ``Prior``); globally only for the first
+   frame and frames after a loss without odometry.
+2. One graph over all frames: a line-projection factor per frame on its matched fragments (the
+   refinement's vectorised factor, Huber kernel in pixels, noise = the frame's own residual level), a
+   ``BetweenFactorPose3`` per odometry step with its covariance, and, only when asked
+   (``smoothness``), a random-walk prior between consecutive frames. Re-association rounds: each frame's
+   fragments are matched again at the smoothed poses until no frame's pairs change.
+3. Marginal covariance per frame. A frame whose own lines do not fix it but which odometry ties to fixed
+   frames keeps its smoothed pose with ``success=False, reason="from neighbours ..."`` and the larger
+   covariance the graph gives it.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+
+from .camera import Camera
+from .config import LineDetectConfig, RegisterConfig
+from .errors import InvalidInputError
+from .geometry import camera_center
+from .graph import (
+    LineFit,
+    check_covariance,
+    check_relative_pose,
+    frame_key,
+    frame_lines,
+    from_pose3,
+    line_fit,
+    next_tolerance,
+    noise_px,
+    odometry_factor,
+    predict,
+    relative_pose,
+    step_covariance,
+    to_pose3,
+)
+from .localization import localize_segments
+from .map.linemap import LineMap
+from .priors import Prior
+from .refine import refine_pose
+from .registration import Registration
+from .score import ImageLines, image_lines, score_pose
+
+log = logging.getLogger(__name__)
+
+FROM_NEIGHBOURS = "from neighbours"  # the reason of a frame posed by the graph, not by its own lines
+
+
+@dataclass(frozen=True)
+class SequenceConfig:
+    """Sequences and tracking: the per-frame checks, odometry defaults, the graph."""
+
+    register: RegisterConfig = field(default_factory=RegisterConfig)
+    detect: LineDetectConfig = field(default_factory=LineDetectConfig)
+    # odometry given without covariances: per step, rotation sigma per metre moved, translation sigma as a
+    # share of the distance plus a floor (wheel and visual odometry drift by 1-3 % of the distance)
+    odometry_rot_deg_per_m: float = 1.0
+    odometry_pos_fraction: float = 0.03
+    odometry_floor_m: float = 0.005
+    # a frame refined from its prediction is a fix when it matches register.min_inliers image segments,
+    # explains decide.min_explained_fraction of its lines and fits them within max_rms_px ...
+    max_rms_px: float = 2.5
+    # ... and moved less than the search radius from its prediction: relocalize_radius_m, plus 3 sigma of
+    # the odometry since the last fix, at most max_relocalize_radius_m (also the Prior of a relocalization)
+    relocalize_radius_m: float = 1.0
+    max_relocalize_radius_m: float = 5.0
+    relocalize_sigma_rot_deg: float = 5.0
+    # without odometry after this many frames without a fix: global registration (no prior)
+    global_after_frames: int = 10
+    # without odometry, a random-walk prior between consecutive frames (never on unless asked)
+    smoothness: bool = False
+    smooth_sigma_rot_deg: float = 5.0
+    smooth_sigma_pos_m: float = 0.3
+    rounds: int = 4  # graph re-association rounds
+    min_noise_px: float = 0.3  # a frame's line noise is its residual level, at least this
+    max_iterations: int = 100  # Levenberg-Marquardt iterations per round
+
+
+def localize_sequence(
+    frames: Sequence[np.ndarray],
+    line_map: LineMap,
+    camera: Camera,
+    relative_poses: Sequence[np.ndarray] | None = None,
+    relative_covariances: Sequence[np.ndarray] | None = None,
+    config: SequenceConfig | None = None,
+    prior: Prior | None = None,
+) -> list[Registration]:
+    """Returns one Registration per frame, smoothed over the sequence.
+
+    frames: images (H, W[, C]) of the camera's size or (N, 4) float64 segments (the camera's pixels).
+    relative_poses: K - 1 (4, 4) measured ``cam_k_from_cam_k+1``; relative_covariances: their (6, 6)
+    covariances (gtsam tangent of the relative pose: rotation rad, translation m, in camera k+1), default
+    from ``config.odometry_*``. prior: what is known of the first frame's pose (a given start pose is
+    ``Prior(cam_from_world=...)``: frame 0 is refined from it). Bad input raises InvalidInputError.
+    """
+    config = config or SequenceConfig()
+    lines = [_lines(f, camera, config, k) for k, f in enumerate(frames)]
+    relative, covariances = check_odometry(relative_poses, relative_covariances, len(lines), config)
+    cam = camera.undistorted()
+    images = [image_lines(s, cam, config.register.score) for s in lines]
+    start = time.perf_counter()
+    alone = frames_alone(lines, images, line_map, cam, relative, covariances, config, prior)
+    log.info("sequence: %d of %d frames fixed alone", sum(r.success for r in alone), len(alone))
+    if relative is None and config.smoothness:
+        log.info("sequence: no odometry; a random-walk smoothness prior links consecutive frames")
+    graph_start = time.perf_counter()
+    out = smooth(images, line_map.segments, cam, alone, relative, covariances, config)
+    share = (time.perf_counter() - graph_start) / max(len(out), 1)
+    log.debug("sequence: %.1f s alone, %.1f s graph", graph_start - start, share * len(out))
+    return [replace(r, timings={**r.timings, "graph": share}) for r in out]
+
+
+def _lines(frame: np.ndarray, camera: Camera, config: SequenceConfig, k: int) -> np.ndarray:
+    try:
+        return frame_lines(frame, camera, config.detect)
+    except InvalidInputError as e:
+        raise InvalidInputError(f"frame {k}: {e}") from None
+
+
+def check_odometry(
+    relative_poses: Sequence[np.ndarray] | None,
+    relative_covariances: Sequence[np.ndarray] | None,
+    num_frames: int,
+    config: SequenceConfig,
+) -> tuple[list[np.ndarray] | None, list[np.ndarray] | None]:
+    """Returns validated (K - 1) relative poses and covariances (defaults filled in), or (None, None)."""
+    if relative_poses is None:
+        if relative_covariances is not None:
+            raise InvalidInputError("relative_covariances given without relative_poses")
+        return None, None
+    if len(relative_poses) != num_frames - 1:
+        raise InvalidInputError(
+            f"{num_frames} frames need {num_frames - 1} relative poses, got {len(relative_poses)}"
+        )
+    relative = [check_relative_pose(T, f"relative_poses[{k}]") for k, T in enumerate(relative_poses)]
+    if relative_covariances is None:
+        c = config
+        return relative, [
+            step_covariance(T, c.odometry_rot_deg_per_m, c.odometry_pos_fraction, c.odometry_floor_m)
+            for T in relative
+        ]
+    if len(relative_covariances) != len(relative):
+        raise InvalidInputError(f"{len(relative)} relative poses but {len(relative_covariances)} covariances")
+    return relative, [
+        check_covariance(C, f"relative_covariances[{k}]") for k, C in enumerate(relative_covariances)
+    ]
+
+
+def refine_from(
+    image: ImageLines,
+    line_map: LineMap,
+    camera: Camera,
+    predicted: np.ndarray,
+    radius_m: float,
+    config: SequenceConfig,
+) -> Registration:
+    """Returns the Registration of a frame refined from a predicted (4, 4) cam_from_world: ``success`` when
+    it passes the fix checks (matches, explained share, rms, within ``radius_m`` of the prediction)."""
+    rc = config.register
+    start = time.perf_counter()
+    centre = camera_center(predicted)
+    visible = visible_mask(line_map, centre, radius_m)
+    r = refine_pose(image, line_map.segments, camera, predicted, rc.refine, rc.score, visible)
+    matches = r.score.matches(rc.decide.min_cover)
+    explained = r.score.explained_length / max(image.total_length, 1e-9)
+    moved = float(np.linalg.norm(camera_center(r.cam_from_world) - centre))
+    reason = ""
+    if len(matches) < rc.min_inliers:
+        reason = f"tracking: {len(matches)} matched image segments (< {rc.min_inliers})"
+    elif explained < rc.decide.min_explained_fraction:
+        reason = f"tracking: the pose explains {100 * explained:.0f} % of the image's lines"
+    elif not np.isfinite(r.covariance).all() or not r.rms_px <= config.max_rms_px:
+        reason = f"tracking: the fit is degenerate or loose (rms {r.rms_px:.1f} px)"
+    elif moved > radius_m:
+        reason = f"tracking: the pose moved {moved:.2f} m from its prediction (> {radius_m:.2f} m)"
+    return Registration(
+        success=not reason, reason=reason, cam_from_world=r.cam_from_world, matches=matches,
+        num_inliers=len(matches), covariance=r.covariance, rms_px=r.rms_px, score=float(r.score.value),
+        explained_fraction=float(explained), timings={"track": time.perf_counter() - start},
+    )  # fmt: skip
+
+
+def visible_mask(line_map: LineMap, centre: np.ndarray, radius_m: float) -> np.ndarray | None:
+    """Returns (M,) bool of the map segments that may be seen from within ``radius_m`` of a (3,) centre
+    (the map's potentially-visible sets), or None when the map has no surfaces to hide anything."""
+    if line_map.surfaces is None:
+        return None
+    mask = np.zeros(len(line_map.segments), dtype=bool)
+    mask[line_map.potentially_visible(centre - radius_m, centre + radius_m)] = True
+    return mask
+
+
+def relocalize(
+    lines2d: np.ndarray,
+    line_map: LineMap,
+    camera: Camera,
+    predicted: np.ndarray | None,
+    radius_m: float,
+    config: SequenceConfig,
+) -> Registration:
+    """Returns the global Registration of undistorted (N, 4) segments, near ``predicted`` when given."""
+    prior = None
+    if predicted is not None:
+        prior = Prior(
+            cam_from_world=predicted, radius_m=radius_m, sigma_rot_deg=config.relocalize_sigma_rot_deg
+        )
+    return localize_segments(lines2d, line_map, camera, config.register, prior)
+
+
+def frames_alone(
+    lines: list[np.ndarray],
+    images: list[ImageLines],
+    line_map: LineMap,
+    camera: Camera,
+    relative: list[np.ndarray] | None,
+    covariances: list[np.ndarray] | None,
+    config: SequenceConfig,
+    prior: Prior | None = None,
+) -> list[Registration]:
+    """Returns each frame's own Registration: tracked from its prediction, else relocalized near it, else
+    global (step 1 of the module docstring)."""
+    out: list[Registration] = []
+    fix: tuple[int, np.ndarray] | None = None  # the last frame fixed alone
+    drift = 0.0  # 3 sigma of the odometry position since the last fix
+    for k, image in enumerate(images):
+        predicted, radius = _prediction(k, out, fix, relative, drift, config)
+        if k == 0 and prior is not None and prior.cam_from_world is not None:
+            predicted, radius = prior.cam_from_world, prior.radius_m or config.relocalize_radius_m
+        result = Registration(success=False, reason="not tried")
+        if predicted is not None and len(lines[k]) >= config.register.min_lines2d:
+            result = refine_from(image, line_map, camera, predicted, radius, config)
+        if not result.success:
+            start = time.perf_counter()
+            reloc = relocalize(lines[k], line_map, camera, predicted, radius, config)
+            timings = {**reloc.timings, "relocalize": time.perf_counter() - start}
+            result = (
+                replace(reloc, timings=timings)
+                if reloc.success or predicted is None
+                else replace(result, timings=timings | result.timings)
+            )
+        out.append(result)
+        if result.success:
+            fix, drift = (k, result.cam_from_world), 0.0
+        elif relative is not None and covariances is not None and k < len(relative):
+            drift += 3.0 * float(np.sqrt(np.trace(covariances[k][3:, 3:])))
+    return out
+
+
+def _prediction(
+    k: int,
+    done: list[Registration],
+    fix: tuple[int, np.ndarray] | None,
+    relative: list[np.ndarray] | None,
+    drift: float,
+    config: SequenceConfig,
+) -> tuple[np.ndarray | None, float]:
+    """Returns (predicted (4, 4) pose of frame k or None for a global search, search radius m)."""
+    if fix is None:
+        return None, config.max_relocalize_radius_m
+    j, pose = fix
+    if relative is not None:  # odometry from the last fix
+        for i in range(j, k):
+            pose = predict(pose, relative[i])
+        return pose, min(config.relocalize_radius_m + drift, config.max_relocalize_radius_m)
+    gap = k - j
+    if gap > config.global_after_frames:
+        return None, config.max_relocalize_radius_m
+    if j >= 1 and done[j - 1].success:  # constant velocity
+        step = relative_pose(done[j - 1].cam_from_world, pose)
+        for _ in range(gap):
+            pose = predict(pose, step)
+    return pose, min(config.relocalize_radius_m * gap, config.max_relocalize_radius_m)
+
+
+def smooth(
+    images: list[ImageLines],
+    lines3d: np.ndarray,
+    camera: Camera,
+    alone: list[Registration],
+    relative: list[np.ndarray] | None,
+    covariances: list[np.ndarray] | None,
+    config: SequenceConfig,
+) -> list[Registration]:
+    """Returns the frames' Registrations after the graph (steps 2 and 3 of the module docstring)."""
+    links = _links(len(images), relative, covariances, config)
+    poses = _initial(alone, links)
+    rc = config.register
+    # a fix starts at its own refinement's tolerance; a frame placed by odometry needs a wider capture
+    tolerance = {k: _start_tolerance(alone[k], rc) for k in poses}
+    sigma = {k: alone[k].rms_px if np.isfinite(alone[k].rms_px) else 1.0 for k in poses}
+    previous: dict[int, np.ndarray] = {}
+    graph, fits = gtsam.NonlinearFactorGraph(), dict[int, LineFit]()
+    for _ in range(config.rounds):
+        fits = dict[int, LineFit]()
+        for k, pose in poses.items():
+            fit = line_fit(
+                frame_key(k),
+                images[k],
+                lines3d,
+                camera,
+                pose,
+                tolerance[k],
+                max(sigma[k], config.min_noise_px),
+                rc,
+            )
+            if fit is not None:
+                fits[k] = fit
+        if all(k in previous and _same(fits[k].pairs, previous[k]) for k in fits) and len(fits) == len(
+            previous
+        ):
+            break
+        graph, members = _graph(poses, fits, links)
+        poses = {**poses, **_optimise(graph, members, poses, config)}
+        for k, fit in fits.items():
+            r = fit.residuals(poses[k])
+            tolerance[k], sigma[k] = next_tolerance(r, rc), noise_px(r, rc, config.min_noise_px)
+        previous = {k: f.pairs for k, f in fits.items()}
+    graph, members = _graph(poses, fits, links)
+    covariances_out = _marginals(graph, members, poses)
+    return [
+        _result(
+            k,
+            alone[k],
+            images[k],
+            lines3d,
+            camera,
+            poses,
+            covariances_out,
+            fits,
+            links,
+            relative is not None,
+            config,
+        )
+        for k in range(len(images))
+    ]
+
+
+def _start_tolerance(alone: Registration, rc: RegisterConfig) -> float:
+    if not alone.success or not np.isfinite(alone.rms_px):
+        return rc.score.distance_px
+    rf = rc.refine
+    return float(np.clip(rf.outlier_sigmas * alone.rms_px, rf.min_outlier_px, rc.score.distance_px))
+
+
+_Link = tuple[int, np.ndarray, np.ndarray]  # (k, cam_k_from_cam_k+1, (6, 6) covariance)
+
+
+def _links(
+    n: int, relative: list[np.ndarray] | None, covariances: list[np.ndarray] | None, config: SequenceConfig
+) -> list[_Link]:
+    """Returns the odometry links (or, when asked and there is no odometry, the random-walk prior)."""
+    if relative is not None and covariances is not None:
+        return [(k, relative[k], covariances[k]) for k in range(n - 1)]
+    if not config.smoothness:
+        return []
+    walk = np.diag([np.radians(config.smooth_sigma_rot_deg) ** 2] * 3 + [config.smooth_sigma_pos_m**2] * 3)
+    return [(k, np.eye(4), walk) for k in range(n - 1)]
+
+
+def _initial(alone: list[Registration], links: list[_Link]) -> dict[int, np.ndarray]:
+    """Returns the initial pose of every frame the graph can reach: its own fix, else chained along the
+    links from the nearest fix before it, else back from the nearest one after it."""
+    poses = {k: r.cam_from_world for k, r in enumerate(alone) if r.success}
+    step = {k: T for k, T, _ in links}
+    for k in range(1, len(alone)):
+        if k not in poses and k - 1 in poses and k - 1 in step:
+            poses[k] = predict(poses[k - 1], step[k - 1])
+    for k in range(len(alone) - 2, -1, -1):
+        if k not in poses and k + 1 in poses and k in step:
+            poses[k] = step[k] @ poses[k + 1]  # cam_k_from_cam_k+1 @ cam_k+1_from_world
+    return dict(sorted(poses.items()))
+
+
+def _graph(
+    poses: dict[int, np.ndarray], fits: dict[int, LineFit], links: list[_Link]
+) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
+    """Returns the graph and its frames: the connected groups of frames holding at least one line factor
+    (a group without one has nothing fixing it in the world)."""
+    parent = {k: k for k in poses}
+
+    def root(k: int) -> int:
+        while parent[k] != k:
+            parent[k] = parent[parent[k]]
+            k = parent[k]
+        return k
+
+    used = [(k, T, C) for k, T, C in links if k in poses and k + 1 in poses]
+    for k, _, _ in used:
+        parent[root(k)] = root(k + 1)
+    anchored = {root(k) for k in fits}
+    members = [k for k in poses if root(k) in anchored]
+    keep = set(members)
+    graph = gtsam.NonlinearFactorGraph()
+    for k in members:
+        if k in fits:
+            graph.add(fits[k].factor)
+    for k, T, C in used:
+        if k in keep:
+            graph.add(odometry_factor(k, T, C))
+    return graph, members
+
+
+def _optimise(
+    graph: gtsam.NonlinearFactorGraph,
+    members: list[int],
+    poses: dict[int, np.ndarray],
+    config: SequenceConfig,
+) -> dict[int, np.ndarray]:
+    """Returns the optimised poses of the graph's frames (Levenberg-Marquardt; the input on failure)."""
+    values = gtsam.Values()
+    for k in members:
+        values.insert(frame_key(k), to_pose3(poses[k]))
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(config.max_iterations)
+    params.setRelativeErrorTol(config.register.refine.relative_error_tol)
+    params.setAbsoluteErrorTol(0.0)
+    try:
+        result = gtsam.LevenbergMarquardtOptimizer(graph, values, params).optimize()
+    except RuntimeError as e:  # indeterminant system
+        log.warning("sequence graph: %s", e)
+        return {}
+    return {k: from_pose3(result.atPose3(frame_key(k))) for k in members}
+
+
+def _marginals(
+    graph: gtsam.NonlinearFactorGraph, members: list[int], poses: dict[int, np.ndarray]
+) -> dict[int, np.ndarray]:
+    """Returns (6, 6) marginal covariances (body frame, rotation first) of the graph's frames."""
+    values = gtsam.Values()
+    for k in members:
+        values.insert(frame_key(k), to_pose3(poses[k]))
+    try:
+        marginals = gtsam.Marginals(graph, values)
+    except RuntimeError as e:
+        log.warning("sequence marginals: %s", e)
+        return {}
+    return {k: marginals.marginalCovariance(frame_key(k)) for k in members}
+
+
+def _result(
+    k: int,
+    alone: Registration,
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    poses: dict[int, np.ndarray],
+    covariances: dict[int, np.ndarray],
+    fits: dict[int, LineFit],
+    links: list[_Link],
+    odometry: bool,
+    config: SequenceConfig,
+) -> Registration:
+    """Returns frame k's Registration at its smoothed pose: a fix of its own lines, or from neighbours."""
+    if k not in covariances:
+        return alone
+    rc = config.register
+    pose = poses[k]
+    score = score_pose(image, lines3d, camera, pose, rc.score)
+    matches = score.matches(rc.decide.min_cover)
+    explained = score.explained_length / max(image.total_length, 1e-9)
+    linked = alone.success or (odometry and any(j in (k, k - 1) for j, _, _ in links))
+    own = k in fits and len(matches) >= rc.min_inliers and explained >= rc.decide.min_explained_fraction
+    rms = float(np.sqrt(np.mean(np.square(fits[k].residuals(pose))))) if k in fits else float("nan")
+    own = own and rms <= config.max_rms_px
+    reason = ""
+    if not (own and linked):
+        reason = f"{FROM_NEIGHBOURS}: the frame's own lines match {len(matches)} image segments ({100 * explained:.0f} % explained)"
+    return replace(
+        alone, success=not reason, reason=reason, cam_from_world=pose, matches=matches, num_inliers=len(matches),
+        covariance=covariances[k], rms_px=rms, score=float(score.value), explained_fraction=float(explained),
+    )  # fmt: skip
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    if a.shape != b.shape:
+        return False
+    return bool(np.array_equal(a[np.lexsort(a.T[::-1])], b[np.lexsort(b.T[::-1])]))

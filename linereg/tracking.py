@@ -1,0 +1,315 @@
+"""``Tracker``: live tracking, one frame at a time, in an incremental GTSAM graph (iSAM2).
+
+Each ``step``: predict the pose (the odometry given with the frame, else constant velocity, scaled by the
+timestamps when given); refine it on the map lines visible near the prediction (``sequence.refine_from``:
+the fix checks); add the frame to iSAM2 with its line-projection factor and a ``BetweenFactorPose3`` (the
+odometry with its covariance, or the constant-velocity model with ``velocity_sigma_*``); read the pose and
+its marginal covariance back. A frame failing the checks is a loss: with odometry it gets the predicted
+pose from the graph (``success=False``, reason "from neighbours ..."); a relocalization then runs, near the
+prediction (a ``Prior``), or globally after ``global_after_frames`` lost frames without odometry. The graph
+is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
+``event`` says what the last step did: initialized, tracked, relocalized, predicted, lost.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+
+from .camera import Camera
+from .errors import InvalidInputError
+from .geometry import camera_center
+from .graph import (
+    LineFit,
+    check_relative_pose,
+    frame_key,
+    frame_lines,
+    from_pose3,
+    line_fit,
+    next_tolerance,
+    noise_px,
+    odometry_factor,
+    predict,
+    relative_pose,
+    step_covariance,
+    to_pose3,
+)
+from .map.linemap import LineMap
+from .registration import Registration
+from .score import ImageLines, image_lines
+from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize
+
+log = logging.getLogger(__name__)
+
+
+def _tracking_sequence() -> SequenceConfig:
+    """The sequence checks with a refinement sized for a good prediction: fewer rounds and iterations."""
+    base = SequenceConfig()
+    refine = replace(base.register.refine, max_rounds=3, max_iterations=10, start_factor=1.5)
+    return replace(base, register=replace(base.register, refine=refine))
+
+
+@dataclass(frozen=True)
+class TrackingConfig:
+    """Live tracking: the per-frame checks and odometry defaults (``sequence``), the motion model, the window."""
+
+    sequence: SequenceConfig = field(default_factory=_tracking_sequence)
+    # the constant-velocity model between frames without odometry: sigma per frame
+    velocity_sigma_rot_deg: float = 3.0
+    velocity_sigma_pos_m: float = 0.15
+    window: int = 50  # frames in the iSAM2 graph before it is re-anchored at the newest pose
+    # a refined frame explaining less than this share of what the last 5 fixes explained is not a fix
+    min_explained_ratio: float = 0.6
+    relocalize_every: int = 5  # while lost, relocalize on every n-th frame (each costs 0.1 s to seconds)
+    relinearize_threshold: float = 0.01
+
+
+class Tracker:
+    """Tracks one camera through a line map, frame by frame (``step``)."""
+
+    def __init__(self, line_map: LineMap, camera: Camera, config: TrackingConfig | None = None):
+        if not isinstance(camera, Camera):
+            raise InvalidInputError(f"camera must be a linereg.Camera, got {type(camera).__name__}")
+        self.line_map = line_map
+        self.camera = camera
+        self.config = config or TrackingConfig()
+        self._cam = camera.undistorted()
+        self.event = "none"
+        self.frames = 0  # frames stepped
+        self._reset()
+
+    def _reset(self) -> None:
+        self._isam: gtsam.ISAM2 | None = None
+        self._keys = 0  # frames in the current graph
+        self._k = -1  # the newest frame's index in the graph
+        self._pose: np.ndarray | None = None  # the newest cam_from_world
+        self._velocity: np.ndarray | None = None  # cam_k-1_from_cam_k of the last two fixes
+        self._stamp: float | None = None
+        self._dt: float | None = None
+        self._lost = 0
+        self._explained: list[float] = []  # explained shares of the last fixes
+
+    def start_at(
+        self, cam_from_world: np.ndarray, sigma_rot_deg: float = 1.0, sigma_pos_m: float = 0.05
+    ) -> None:
+        """Starts (or restarts) tracking from a known (4, 4) pose with the given uncertainty."""
+        pose = check_relative_pose(cam_from_world, "cam_from_world")
+        self._anchor(pose, np.diag([np.radians(sigma_rot_deg) ** 2] * 3 + [sigma_pos_m**2] * 3))
+        self.event = "initialized"
+
+    @property
+    def cam_from_world(self) -> np.ndarray | None:
+        """(4, 4) the newest pose, or None before the first fix."""
+        return self._pose
+
+    def step(
+        self, frame: np.ndarray, relative_pose: np.ndarray | None = None, timestamp: float | None = None
+    ) -> Registration:
+        """Returns the Registration of the next frame: an image of the camera's size or (N, 4) segments.
+
+        relative_pose: measured (4, 4) cam_prev_from_cam_this (odometry since the previous frame);
+        timestamp: seconds, increasing. Bad input raises InvalidInputError and leaves the tracker as it was.
+        """
+        start = time.perf_counter()
+        relative = None if relative_pose is None else check_relative_pose(relative_pose, "relative_pose")
+        if timestamp is not None and not (
+            math.isfinite(timestamp) and (self._stamp is None or timestamp > self._stamp)
+        ):
+            raise InvalidInputError(
+                f"timestamp must be finite and increasing, got {timestamp} after {self._stamp}"
+            )
+        lines = frame_lines(frame, self.camera, self.config.sequence.detect)
+        self.frames += 1
+        image = image_lines(lines, self._cam, self.config.sequence.register.score)
+        result = self._step(lines, image, relative, timestamp)
+        if timestamp is not None:
+            self._dt = None if self._stamp is None else timestamp - self._stamp
+            self._stamp = timestamp
+        return replace(result, timings={**result.timings, "step": time.perf_counter() - start})
+
+    def _step(
+        self, lines: np.ndarray, image: ImageLines, relative: np.ndarray | None, stamp: float | None
+    ) -> Registration:
+        cfg = self.config.sequence
+        predicted, step, cov = self._predict(relative, stamp)
+        radius = cfg.max_relocalize_radius_m
+        tracked = Registration(success=False, reason="no pose yet")
+        if predicted is not None and self._pose is not None:
+            radius = min(cfg.relocalize_radius_m * (1 + self._lost), cfg.max_relocalize_radius_m)
+            # without odometry the motion is a guess: standing still competes with constant velocity
+            starts = [predicted] if relative is not None else [predicted, self._pose]
+            tracked = self._track(image, starts, radius)
+            if tracked.success:
+                self.event = "tracked"
+                return self._add(image, tracked, step, cov)
+        self._lost += 1
+        if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % self.config.relocalize_every == 0:
+            near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
+            start = time.perf_counter()
+            found = relocalize(lines, self.line_map, self._cam, near, radius, cfg)
+            found = replace(found, timings={**found.timings, "relocalize": time.perf_counter() - start})
+            if found.success:
+                self.event = "initialized" if self._pose is None else "relocalized"
+                previous, consecutive = self._pose, self._lost == 1
+                self._start(image, found)
+                if previous is not None and consecutive:  # the motion since the last frame is known
+                    self._velocity = relative_pose(previous, found.cam_from_world)
+                return found
+        return self._coast(tracked, predicted, step, cov)
+
+    def _track(self, image: ImageLines, starts: list[np.ndarray], radius: float) -> Registration:
+        """Returns the best-scoring refinement from the start poses; a fix only if it also explains at
+        least ``min_explained_ratio`` of what the recent fixes explained (a wrong basin explains less)."""
+        cfg = self.config
+        tried = [refine_from(image, self.line_map, self._cam, T, radius, cfg.sequence) for T in starts]
+        best = max(tried, key=lambda r: (r.success, r.score))
+        if best.success and self._explained:
+            usual = float(np.median(self._explained))
+            if best.explained_fraction < cfg.min_explained_ratio * usual:
+                reason = f"tracking: explains {100 * best.explained_fraction:.0f} % of the lines, the recent frames {100 * usual:.0f} %"
+                return replace(best, success=False, reason=reason)
+        if best.success:
+            self._explained = [*self._explained[-4:], best.explained_fraction]
+        return best
+
+    def _predict(
+        self, relative: np.ndarray | None, stamp: float | None
+    ) -> tuple[np.ndarray | None, np.ndarray | None, np.ndarray | None]:
+        """Returns (predicted pose, cam_prev_from_cam_this step, its (6, 6) covariance), Nones before a fix."""
+        if self._pose is None:
+            return None, None, None
+        cfg = self.config
+        if relative is not None:
+            sc = cfg.sequence
+            return (
+                predict(self._pose, relative),
+                relative,
+                step_covariance(
+                    relative, sc.odometry_rot_deg_per_m, sc.odometry_pos_fraction, sc.odometry_floor_m
+                ),
+            )
+        step = np.eye(4) if self._velocity is None else self._velocity
+        if self._velocity is not None and stamp is not None and self._stamp is not None and self._dt:
+            xi = gtsam.Pose3.Logmap(gtsam.Pose3(step)) * ((stamp - self._stamp) / self._dt)
+            step = gtsam.Pose3.Expmap(xi).matrix()
+        cov = np.diag([np.radians(cfg.velocity_sigma_rot_deg) ** 2] * 3 + [cfg.velocity_sigma_pos_m**2] * 3)
+        return predict(self._pose, step), step, cov * (1 + self._lost) ** 2
+
+    def _start(self, image: ImageLines, found: Registration) -> None:
+        """Starts a new graph at a relocalized pose: a prior with its covariance and its line factor."""
+        cov = found.covariance if np.isfinite(found.covariance).all() else np.diag([1e-4] * 3 + [1e-2] * 3)
+        self._anchor(found.cam_from_world, cov)
+
+    def _anchor(self, cam_from_world: np.ndarray, covariance: np.ndarray) -> None:
+        """Starts a new graph: a prior at a (4, 4) pose with its (6, 6) covariance."""
+        self._reset_graph()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        key = frame_key(self._k + 1)
+        noise = gtsam.noiseModel.Gaussian.Covariance(covariance)
+        graph.add(gtsam.PriorFactorPose3(key, to_pose3(cam_from_world), noise))
+        values.insert(key, to_pose3(cam_from_world))
+        self._update(graph, values)
+        self._velocity, self._lost = None, 0
+
+    def _reset_graph(self) -> None:
+        params = gtsam.ISAM2Params()
+        params.setRelinearizeThreshold(self.config.relinearize_threshold)
+        self._isam = gtsam.ISAM2(params)
+        self._keys = 0
+
+    def _add(
+        self, image: ImageLines, tracked: Registration, step: np.ndarray | None, cov: np.ndarray | None
+    ) -> Registration:
+        """Adds a tracked frame to iSAM2 (line factor + motion factor); returns its Registration."""
+        sc = self.config.sequence
+        previous = self._pose
+        if self._keys >= self.config.window:
+            self._reanchor()
+        key = frame_key(self._k + 1)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(key, to_pose3(tracked.cam_from_world))
+        rc = sc.register
+        fit = self._fit(key, image, tracked.cam_from_world, rc.score.distance_px, 1.0)
+        if fit is not None:  # again at the fit's own tolerance and noise level
+            r = fit.residuals(tracked.cam_from_world)
+            fit = self._fit(
+                key, image, tracked.cam_from_world, next_tolerance(r, rc), noise_px(r, rc, sc.min_noise_px)
+            )
+        if fit is None or step is None or cov is None:
+            return tracked  # cannot happen for a tracked frame (it has a prediction and matches)
+        graph.add(fit.factor)
+        graph.add(odometry_factor(self._k, step, cov))
+        self._update(graph, values)
+        assert previous is not None and self._pose is not None
+        self._velocity, self._lost = relative_pose(previous, self._pose), 0
+        return replace(tracked, cam_from_world=self._pose, covariance=self._covariance())
+
+    def _fit(
+        self, key: int, image: ImageLines, pose: np.ndarray, tolerance_px: float, sigma_px: float
+    ) -> LineFit | None:
+        cfg = self.config.sequence.register
+        return line_fit(key, image, self.line_map.segments, self._cam, pose, tolerance_px, sigma_px, cfg)
+
+    def _coast(
+        self,
+        tracked: Registration,
+        predicted: np.ndarray | None,
+        step: np.ndarray | None,
+        cov: np.ndarray | None,
+    ) -> Registration:
+        """Returns the Registration of a lost frame: the graph's prediction when there is one."""
+        if predicted is None or step is None or cov is None or self._isam is None:
+            self.event = "lost"
+            return replace(tracked, success=False, reason=f"lost: {tracked.reason}")
+        self.event = "predicted"
+        key = frame_key(self._k + 1)
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        values.insert(key, to_pose3(predicted))
+        graph.add(odometry_factor(self._k, step, cov))
+        self._update(graph, values)
+        reason = f"{FROM_NEIGHBOURS}: {self._lost} frame(s) predicted since the last fix ({tracked.reason})"
+        assert self._pose is not None
+        return Registration(
+            success=False,
+            reason=reason,
+            cam_from_world=self._pose,
+            covariance=self._covariance(),
+            timings=tracked.timings,
+        )
+
+    def _reanchor(self) -> None:
+        """Restarts iSAM2 with a prior at the newest pose and its marginal covariance (bounded memory)."""
+        assert self._pose is not None
+        cov = self._covariance()
+        self._reset_graph()
+        graph, values = gtsam.NonlinearFactorGraph(), gtsam.Values()
+        key = frame_key(self._k)
+        graph.add(
+            gtsam.PriorFactorPose3(key, to_pose3(self._pose), gtsam.noiseModel.Gaussian.Covariance(cov))
+        )
+        values.insert(key, to_pose3(self._pose))
+        self._isam.update(graph, values)  # type: ignore[union-attr]
+        self._keys = 1
+
+    def _update(self, graph: gtsam.NonlinearFactorGraph, values: gtsam.Values) -> None:
+        assert self._isam is not None
+        self._isam.update(graph, values)
+        self._k += 1
+        self._keys += 1
+        self._pose = from_pose3(self._isam.calculateEstimatePose3(frame_key(self._k)))
+
+    def _covariance(self) -> np.ndarray:
+        assert self._isam is not None
+        try:
+            return np.asarray(self._isam.marginalCovariance(frame_key(self._k)))
+        except RuntimeError:
+            return np.full((6, 6), np.nan)
+
+    def centre(self) -> np.ndarray | None:
+        """Returns the (3,) newest camera centre, or None before the first fix."""
+        return None if self._pose is None else camera_center(self._pose)

@@ -1,0 +1,182 @@
+"""Sequences and tracking: exact recovery in one graph, odometry covariance growth, bridged frames, bad input,
+trajectory errors as evo computes them."""
+
+from __future__ import annotations
+
+import itertools
+
+import gtsam
+import numpy as np
+import pytest
+
+from linereg.camera import Camera
+from linereg.errors import InvalidInputError
+from linereg.geometry import invert, pose_errors
+from linereg.graph import relative_pose
+from linereg.map.linemap import LineMap
+from linereg.priors import Prior
+from linereg.sequence import FROM_NEIGHBOURS, localize_sequence
+from linereg.sim.synthetic import look_at, project_visible
+from linereg.tracking import Tracker
+
+CAMERA = Camera(fx=800.0, fy=800.0, cx=320.0, cy=240.0, width=640, height=480)
+BLANK = np.zeros((0, 4))
+
+
+def _scene(n_frames: int = 6, seed: int = 0):
+    """Returns (LineMap, (K, 4, 4) truth, list of exact (N, 4) segments): a camera circling a box of lines.
+
+    Seed 0 has no two map lines within a few pixels of each other in any view (seeds 2-4 do: a single
+    frame's refinement then settles with a wrong pair, and no test of exactness can pass).
+    """
+    rng = np.random.default_rng(seed)
+    directions = np.r_[np.tile(np.eye(3), (12, 1)), rng.normal(size=(8, 3))]
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    starts = rng.uniform(-1.5, 1.5, (len(directions), 3))
+    lines3d = np.c_[starts, starts + rng.uniform(0.4, 1.2, (len(directions), 1)) * directions]
+    angles = np.radians(2.0) * np.arange(n_frames)  # 0.14 m and 2 degrees per frame
+    truth = np.array([look_at(np.array([4 * np.cos(a), 4 * np.sin(a), 0.8]), np.zeros(3)) for a in angles])
+    frames = [project_visible(lines3d, CAMERA, T)[0] for T in truth]
+    return LineMap.from_segments(lines3d), truth, frames
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return _scene()
+
+
+def _odometry(truth: np.ndarray, sigma: float = 1e-3):
+    relative = [relative_pose(a, b) for a, b in itertools.pairwise(truth)]
+    return relative, [np.eye(6) * sigma**2 for _ in relative]
+
+
+def test_exact_odometry_and_exact_lines_recover_the_poses(scene):
+    line_map, truth, frames = scene
+    relative, covariances = _odometry(truth)
+    start = truth[0].copy()
+    start[:3, 3] += 0.05  # a rough start pose, refined by the graph
+    results = localize_sequence(
+        frames, line_map, CAMERA, relative, covariances, prior=Prior(cam_from_world=start, radius_m=0.5)
+    )
+    for r, T in zip(results, truth, strict=True):
+        rot, pos, _ = pose_errors(r.cam_from_world, T)
+        assert r.success, r.reason
+        assert pos < 1e-6 and rot < 1e-5
+        assert np.isfinite(r.covariance).all()
+
+
+def test_odometry_alone_propagates_the_pose_with_the_right_covariance(scene):
+    line_map, truth, frames = scene
+    relative, _ = _odometry(truth)
+    covariances = [np.diag([1e-4, 2e-4, 3e-4, 1e-3, 2e-3, 3e-3]) for _ in relative]
+    blank_after = [frames[0], BLANK, BLANK, BLANK]
+    results = localize_sequence(
+        blank_after,
+        line_map,
+        CAMERA,
+        relative[:3],
+        covariances[:3],
+        prior=Prior(cam_from_world=truth[0], radius_m=0.5),
+    )
+    assert results[0].success
+    expected = results[0].covariance
+    for k in range(1, 4):
+        r = results[k]
+        assert not r.success and r.reason.startswith(FROM_NEIGHBOURS)
+        # right perturbation: xi_k = Ad(step^-1) xi_k-1 + noise (gtsam's between on world_T_cam)
+        adjoint = gtsam.Pose3(relative[k - 1]).inverse().AdjointMap()
+        expected = adjoint @ expected @ adjoint.T + covariances[k - 1]
+        np.testing.assert_allclose(r.covariance, expected, rtol=1e-6, atol=1e-12)
+        assert pose_errors(r.cam_from_world, truth[k])[1] < 1e-6
+    assert np.trace(results[3].covariance) > np.trace(results[1].covariance) > np.trace(results[0].covariance)
+
+
+def test_a_dropped_frame_is_bridged_with_a_larger_covariance(scene):
+    line_map, truth, frames = scene
+    relative, _ = _odometry(truth)
+    dropped = [*frames[:2], BLANK, *frames[3:]]
+    results = localize_sequence(
+        dropped, line_map, CAMERA, relative, prior=Prior(cam_from_world=truth[0], radius_m=0.5)
+    )
+    assert [r.success for r in results] == [True, True, False, True, True, True]
+    assert results[2].reason.startswith(FROM_NEIGHBOURS)
+    rot, pos, _ = pose_errors(results[2].cam_from_world, truth[2])
+    assert pos < 0.01 and rot < 0.2
+    assert np.trace(results[2].covariance[3:, 3:]) > np.trace(results[1].covariance[3:, 3:])
+
+
+def test_sequence_bad_input_names_the_frame(scene):
+    line_map, truth, frames = scene
+    relative, _ = _odometry(truth)
+    bad = frames[1].copy()
+    bad[0, 0] = np.nan
+    with pytest.raises(InvalidInputError, match="frame 1"):
+        localize_sequence([frames[0], bad], line_map, CAMERA)
+    skewed = relative[0].copy()
+    skewed[:3, :3] *= 1.1
+    with pytest.raises(InvalidInputError, match="not rigid"):
+        localize_sequence(frames[:2], line_map, CAMERA, [skewed])
+    with pytest.raises(InvalidInputError, match="relative poses"):
+        localize_sequence(frames[:3], line_map, CAMERA, relative[:1])
+
+
+def test_tracker_tracks_coasts_and_recovers(scene):
+    line_map, truth, frames = scene
+    relative, _ = _odometry(truth)
+    tracker = Tracker(line_map, CAMERA)
+    tracker.start_at(truth[0])
+    events = []
+    for k, frame in enumerate(frames):
+        r = tracker.step(BLANK if k == 2 else frame, relative[k - 1] if k else None, timestamp=0.1 * k)
+        events.append(tracker.event)
+        assert pose_errors(r.cam_from_world, truth[k])[1] < 0.01
+        assert r.success == (k != 2)
+    assert events == ["tracked", "tracked", "predicted", "tracked", "tracked", "tracked"]
+
+
+def test_tracker_bad_input_leaves_the_session_alive(scene):
+    line_map, truth, frames = scene
+    tracker = Tracker(line_map, CAMERA)
+    tracker.start_at(truth[0])
+    assert tracker.step(frames[0]).success
+    with pytest.raises(InvalidInputError, match="camera is 640x480"):
+        tracker.step(np.zeros((100, 100), np.uint8))
+    with pytest.raises(InvalidInputError, match="not rigid"):
+        tracker.step(frames[1], relative_pose=np.full((4, 4), 2.0))
+    with pytest.raises(InvalidInputError, match="NaN"):
+        tracker.step(np.full((3, 4), np.nan))
+    with pytest.raises(InvalidInputError, match="relative_pose"):
+        tracker.step(frames[1], relative_pose=np.eye(4) * np.nan)
+    r = tracker.step(frames[1], relative_pose(truth[0], truth[1]))
+    assert r.success and tracker.event == "tracked"
+    assert pose_errors(r.cam_from_world, truth[1])[1] < 0.01
+
+
+def test_trajectory_errors_match_evo(tmp_path):
+    evo_metrics = pytest.importorskip("evo.core.metrics")
+    from evo.tools import file_interface
+
+    from linereg import io
+    from linereg.bench.trajectory import ape, rpe
+
+    _, truth, _ = _scene(12)
+    rng = np.random.default_rng(0)
+    est = []
+    for T in truth:
+        world_from_cam = invert(T)
+        world_from_cam[:3, 3] += rng.normal(0, 0.05, 3)
+        world_from_cam[:3, :3] = gtsam.Rot3.Expmap(rng.normal(0, 0.02, 3)).matrix() @ world_from_cam[:3, :3]
+        est.append(invert(world_from_cam))
+    times = np.arange(len(truth)) * 0.1
+    io.write_tum(tmp_path / "ref.tum", times.tolist(), truth)
+    io.write_tum(tmp_path / "est.tum", times.tolist(), est)
+    ref_traj = file_interface.read_tum_trajectory_file(str(tmp_path / "ref.tum"))
+    est_traj = file_interface.read_tum_trajectory_file(str(tmp_path / "est.tum"))
+    rmse = evo_metrics.StatisticsType.rmse
+    for ours, metric in (
+        (ape(np.array(est), truth)[0].rmse, evo_metrics.APE(evo_metrics.PoseRelation.translation_part)),
+        (rpe(np.array(est), truth)[0].rmse, evo_metrics.RPE(evo_metrics.PoseRelation.translation_part)),
+        (rpe(np.array(est), truth)[1].rmse, evo_metrics.RPE(evo_metrics.PoseRelation.rotation_angle_deg)),
+    ):
+        metric.process_data((ref_traj, est_traj))
+        assert ours == pytest.approx(metric.get_statistic(rmse), rel=1e-6)
