@@ -20,9 +20,13 @@ __all__ = [
     "Prior",
     "RegisterConfig",
     "Registration",
+    "SequenceConfig",
+    "Tracker",
+    "TrackingConfig",
     "colorize",
     "localize",
     "localize_segments",
+    "localize_sequence",
     "register",
 ]
 __version__ = "0.1.0"
@@ -34,6 +38,10 @@ _LAZY = {
     "localize_segments": "linereg.localization",
     "Prior": "linereg.priors",
     "LineMap": "linereg.map.linemap",
+    "localize_sequence": "linereg.sequence",
+    "SequenceConfig": "linereg.sequence",
+    "Tracker": "linereg.tracking",
+    "TrackingConfig": "linereg.tracking",
     "colorize": "linereg.colorization",
 }
 
