@@ -252,3 +252,33 @@ def test_process_pool_gives_the_inline_answer(files, tmp_path):
     with batch.runner(workers=2) as runner:
         colorize_file(files / "cloud.ply", tmp_path / "b.ply", photos, config, runner)
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
+
+
+def test_fill_gaps_closes_holes_in_an_occluder_but_keeps_its_edge():
+    from linereg.color.config import VisibilityConfig
+    from linereg.color.depth import fill_gaps
+
+    depth = np.full((40, 40), 20.0, np.float32)  # a far wall
+    depth[:, :20] = 5.0  # an occluder over the left half
+    depth[10, 8] = depth[20:22, 5:15] = 20.0  # a hole and a 2 px stripe of scan-line gaps in it
+    filled = fill_gaps(depth, VisibilityConfig())
+    assert (filled[:, :20] == 5.0).all()
+    assert (filled[:, 20:] == 20.0).all()  # the wall right beside the occluder's edge stays visible
+
+
+def test_square_splats_lie_in_the_tangent_plane():
+    from linereg.color.config import VisibilityConfig
+    from linereg.color.depth import SplatLayout, depth_slope, finish, splat
+
+    layout = SplatLayout.for_camera(CAMERA, VisibilityConfig())
+    normal = np.array([[np.sin(0.6), 0.0, -np.cos(0.6)]], np.float32)  # a plane turned 0.6 rad about y
+    u, v, z = (np.array([x], np.float32) for x in (80.0, 60.0, 10.0))
+    slope = depth_slope(normal, u, v, z, CAMERA, max_slope=1.5)
+    buffer = layout.empty()
+    splat(buffer, layout, u, v, z, np.array([3.0], np.float32), slope)
+    row = finish(buffer, layout)[60, 79:82]
+    # the plane n . X = n . P met by the rays of pixels 79..81
+    x = (np.arange(79, 82) - CAMERA.cx) / CAMERA.fx
+    p = z[0] * np.array([(80.0 - CAMERA.cx) / CAMERA.fx, (60.0 - CAMERA.cy) / CAMERA.fy, 1.0])
+    truth = normal[0] @ p / (normal[0, 0] * x + normal[0, 1] * (60.0 - CAMERA.cy) / CAMERA.fy + normal[0, 2])
+    np.testing.assert_allclose(row, truth, atol=2e-3)

@@ -35,8 +35,12 @@ class VisibilityConfig:
     # the slope term of the tolerance stops at this tan(incidence): a surface seen more grazing than
     # atan(max_slope) hides parts of itself rather than let what lies behind an occluder through
     max_slope: float = 1.5
-    # passes of gap closing after the splats (``depth.fill_gaps``): irregular sampling leaves 1-2 px holes
-    gap_passes: int = 2
+    # gap closing after the splats (``depth.fill_gaps``): a pixel that meets a nearer surface in at least
+    # ``gap_directions`` of 8 directions within ``gap_radius_px`` lies in a hole of that surface (irregular
+    # and striped sampling leaves holes up to ~5 px wide); 6 keeps a pixel beside a straight edge (3-5)
+    gap_radius_px: int = 3
+    gap_directions: int = 6
+    gap_passes: int = 3  # a pass closes a hole enclosed on 6 sides; holes of odd shapes take more
 
 
 @dataclass(frozen=True)

@@ -5,8 +5,10 @@ spacing and range), so a sparse occluder still hides what lies behind it. Splats
 ``np.minimum.at`` per chunk: up to ``EXACT_MAX_PX`` wide as squares of ``ceil(d)`` pixels; wider ones (near
 points, few) into a pyramid, at level ``L = ceil(log2 d)`` (cells of ``c = 2^L`` px) in the cell whose 2 x 2
 block covers ``[u - c/2, u + c/2]``. ``finish`` spreads every cell over its 2 x 2 block and takes the minimum
-over levels; ``fill_gaps`` then closes the holes irregular sampling leaves. Every step is a minimum, so buffers of different chunks combine by ``np.minimum`` before or
-after ``finish`` alike (chunks may be splatted on different machines).
+over levels; ``fill_gaps`` then closes the holes irregular sampling leaves. Square splats lie in their
+point's tangent plane (``depth_slope``), so a slanted surface does not hide itself and the depth test's
+tolerance stays small. Every step is a minimum, so buffers of different chunks combine by ``np.minimum``
+before or after ``finish`` alike (chunks may be splatted on different machines).
 """
 
 from __future__ import annotations
@@ -20,6 +22,7 @@ from ..camera import Camera
 from .config import VisibilityConfig
 
 EXACT_MAX_PX = 5  # splats up to this wide are exact squares of pixels; wider ones go to the pyramid
+GAP_DIRECTIONS = ((0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1))  # (dy, dx)
 
 
 @dataclass(frozen=True)
@@ -63,34 +66,66 @@ def splat(
     v: np.ndarray,
     z: np.ndarray,
     diameter_px: np.ndarray,
+    slope: np.ndarray | None = None,
 ) -> None:
     """Writes the minimum depth of every splat into ``buffer`` (from ``layout.empty()``), in place.
 
-    u, v: (n,) float32 pixels inside the image; z: (n,) float32 depth m; diameter_px: (n,) float32.
+    u, v: (n,) float32 pixels inside the image; z: (n,) float32 depth m; diameter_px: (n,) float32;
+    slope: (n, 2) float32 dz/du, dz/dv (m per pixel, ``depth_slope``): square splats then write the depth
+    of the point's tangent plane at each pixel rather than its own, pyramid splats stay flat.
     """
     side = np.maximum(np.ceil(diameter_px), 1.0).astype(np.int64)
     index, depth = [], []
     for s in np.unique(np.minimum(side, EXACT_MAX_PX + 1)):
         sel = np.flatnonzero(side == s) if s <= EXACT_MAX_PX else np.flatnonzero(side > EXACT_MAX_PX)
         if s <= EXACT_MAX_PX:
-            index.append(_square_indices(layout, u[sel], v[sel], int(s)))
-            depth.append(np.repeat(z[sel], s * s))
+            rows, cols = _square_pixels(layout, u[sel], v[sel], int(s))
+            index.append((rows * layout.width + cols).ravel())
+            d = np.broadcast_to(z[sel, None, None], rows.shape)
+            if slope is not None:
+                du, dv = cols - u[sel, None, None], rows - v[sel, None, None]
+                d = d + slope[sel, 0, None, None] * du + slope[sel, 1, None, None] * dv
+            depth.append(d.ravel())
         else:
             level = np.minimum(np.ceil(np.log2(diameter_px[sel])), layout.max_level).astype(np.int64)
             index.append(_block_indices(layout, u[sel], v[sel], level))
             depth.append(z[sel])
     if index:
-        np.minimum.at(buffer, np.concatenate(index), np.concatenate(depth))
+        np.minimum.at(buffer, np.concatenate(index), np.concatenate(depth).astype(np.float32))
 
 
-def _square_indices(layout: SplatLayout, u: np.ndarray, v: np.ndarray, side: int) -> np.ndarray:
-    """Returns (n * side^2,) flat indices of the ``side`` x ``side`` pixels centred on each point (clipped)."""
+def _square_pixels(
+    layout: SplatLayout, u: np.ndarray, v: np.ndarray, side: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (n, side, side) int64 rows and columns of the ``side`` x ``side`` pixels centred on each
+    point (clipped to the image)."""
     first_col = np.floor(u - 0.5 * side + 1.0).astype(np.int64)  # side 1: the pixel holding the point
     first_row = np.floor(v - 0.5 * side + 1.0).astype(np.int64)
     steps = np.arange(side)
     cols = np.clip(first_col[:, None] + steps, 0, layout.width - 1)  # (n, side)
     rows = np.clip(first_row[:, None] + steps, 0, layout.height - 1)
-    return (rows[:, :, None] * layout.width + cols[:, None, :]).ravel()
+    shape = (len(u), side, side)
+    return np.broadcast_to(rows[:, :, None], shape), np.broadcast_to(cols[:, None, :], shape)
+
+
+def depth_slope(
+    normals_cam: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray, camera: Camera, max_slope: float
+) -> np.ndarray:
+    """Returns (n, 2) float32 dz/du, dz/dv (m per pixel) of the tangent planes of n points; 0 where the
+    normal is unknown.
+
+    The plane n . X = n . P (camera frame) meets the ray of pixel (u, v) at ``z = n . P / (n . ray)``,
+    ``ray = ((u - cx) / fx, (v - cy) / fy, 1)``; its derivative at the point is
+    ``dz/du = -z n_x / (fx n . ray)`` (same for v). The slope is clipped to ``max_slope`` x the size of a
+    pixel at depth z (a tan of incidence): a grazing plane's extrapolation is not trusted further.
+    normals_cam: (n, 3) float32 in the camera frame (NaN: unknown); u, v, z: (n,) float32.
+    """
+    x, y = (u - camera.cx) / camera.fx, (v - camera.cy) / camera.fy
+    facing = normals_cam[:, 0] * x + normals_cam[:, 1] * y + normals_cam[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        g = -z[:, None] * normals_cam[:, :2] / (np.array([camera.fx, camera.fy]) * facing[:, None])
+    limit = (max_slope / max(camera.fx, camera.fy)) * z[:, None]
+    return np.nan_to_num(np.clip(g, -limit, limit), nan=0.0).astype(np.float32)
 
 
 def _block_indices(layout: SplatLayout, u: np.ndarray, v: np.ndarray, level: np.ndarray) -> np.ndarray:
@@ -121,21 +156,28 @@ def finish(buffer: np.ndarray, layout: SplatLayout) -> np.ndarray:
 
 
 def fill_gaps(depth: np.ndarray, config: VisibilityConfig) -> np.ndarray:
-    """Returns the (H, W) float32 depth map with its gaps closed: a pixel at least ``depth_tol`` behind the
-    5th nearest of its 8 neighbours takes that depth (``gap_passes`` times, each closes 1 px more).
+    """Returns the (H, W) float32 depth map with its gaps closed: a pixel that meets a surface nearer by
+    more than ``depth_tol`` in at least ``gap_directions`` of 8 directions (within ``gap_radius_px``)
+    takes the farthest of those nearer depths; ``gap_passes`` times.
 
-    Splats cover the mean spacing, but irregular sampling leaves gaps through which farther points show;
-    a gap has nearer neighbours on most sides, while a pixel beside an occluder's edge has at most 3 (a
-    straight edge) and keeps its depth. Not a minimum like ``finish``: applied once, to the combined map.
+    Splats cover the mean spacing, but irregular and striped sampling (scan lines) leaves holes through
+    which farther points show. A hole is enclosed by its occluder on (nearly) every side; a pixel beside
+    an occluder's straight edge meets it in at most 3 to 5 directions and keeps its depth. Not a minimum
+    like ``finish``: applied once, to the combined map.
     """
+    h, w = depth.shape
+    r = config.gap_radius_px
+    nearest = np.empty((len(GAP_DIRECTIONS), h, w), dtype=np.float32)
     for _ in range(config.gap_passes):
-        padded = np.pad(depth, 1, mode="edge")
-        h, w = depth.shape
-        shifts = [padded[1 + dy : 1 + dy + h, 1 + dx : 1 + dx + w] for dy in (-1, 0, 1) for dx in (-1, 0, 1)]
-        neighbours = np.stack([s for i, s in enumerate(shifts) if i != 4])
-        fifth = np.partition(neighbours, 4, axis=0)[4]
-        gap = depth > fifth + config.depth_tol_m + config.depth_tol_rel * fifth
-        depth = np.where(gap, fifth, depth)
+        padded = np.pad(depth, r, constant_values=np.inf)
+        for i, (dy, dx) in enumerate(GAP_DIRECTIONS):
+            nearest[i] = np.inf
+            for step in range(1, r + 1):
+                y, x = r + dy * step, r + dx * step
+                np.minimum(nearest[i], padded[y : y + h, x : x + w], out=nearest[i])
+        enclosing = np.partition(nearest, config.gap_directions - 1, axis=0)[config.gap_directions - 1]
+        gap = depth > enclosing + config.depth_tol_m + config.depth_tol_rel * enclosing
+        depth = np.where(gap, enclosing, depth)
     return depth
 
 
@@ -151,13 +193,12 @@ def tolerance_m(
     """Returns (n,) float32 how far (m) a point may lie behind the depth map and still be visible.
 
     The floor and the share of range, plus the depth change on a surface at ``tan_incidence`` to the
-    viewing ray across the reach of a splat beyond its point (half a square and a pixel of rounding; 1.5
-    cells of a pyramid block): the nearest splat of the same surface at its pixel may come from a
-    neighbour that far away.
+    viewing ray across what the depth map cannot follow: a pixel of rounding for square splats (they are
+    tilted along their tangent plane, ``depth_slope``), 1.5 cells of a flat pyramid block (the nearest
+    splat of the same surface at the point's pixel may come from a neighbour that far away).
     """
-    side = np.maximum(np.ceil(diameter), 1.0)
     cell = np.exp2(np.ceil(np.log2(np.maximum(diameter, 1.0))))
-    reach_px = np.where(side <= EXACT_MAX_PX, 0.5 * side + 1.0, 1.5 * cell)
+    reach_px = np.where(np.ceil(diameter) <= EXACT_MAX_PX, 1.0, 1.5 * cell)
     footprint_m = reach_px * z / max(camera.fx, camera.fy)
     return config.depth_tol_m + config.depth_tol_rel * z + footprint_m * tan_incidence
 
