@@ -15,7 +15,7 @@ from linereg.geometry import invert, pose_errors
 from linereg.graph import relative_pose
 from linereg.map.linemap import LineMap
 from linereg.priors import Prior
-from linereg.sequence import FROM_NEIGHBOURS, localize_sequence
+from linereg.sequence import FROM_NEIGHBOURS, SequenceConfig, localize_sequence
 from linereg.sim.synthetic import look_at, project_visible
 from linereg.tracking import Tracker
 
@@ -180,3 +180,17 @@ def test_trajectory_errors_match_evo(tmp_path):
     ):
         metric.process_data((ref_traj, est_traj))
         assert ours == pytest.approx(metric.get_statistic(rmse), rel=1e-6)
+
+
+def test_without_odometry_frames_stand_alone_unless_smoothness_is_asked(scene):
+    line_map, truth, frames = scene
+    dropped = [*frames[:2], BLANK, *frames[3:]]
+    start = Prior(cam_from_world=truth[0], radius_m=0.5)
+    alone = localize_sequence(dropped, line_map, CAMERA, prior=start)
+    assert not alone[2].success and not alone[2].reason.startswith(FROM_NEIGHBOURS)
+    assert all(r.success for k, r in enumerate(alone) if k != 2)
+    smoothed = localize_sequence(
+        dropped, line_map, CAMERA, config=SequenceConfig(smoothness=True), prior=start
+    )
+    assert smoothed[2].reason.startswith(FROM_NEIGHBOURS)
+    assert pose_errors(smoothed[2].cam_from_world, truth[2])[1] < 0.3
