@@ -112,7 +112,8 @@ def register_undistorted(
     # map on a fine grid, farther out on a coarser one: a photo of a small mapped object is taken from afar)
     with timer("search"):
         image = image_lines(lines2d, camera, config.score)
-        regions: list[tuple[np.ndarray, np.ndarray]] = []  # the map's margins cut to a prior's ball: the same box twice is searched once
+        # the map's margins cut to a prior's ball: the same box twice is searched once
+        regions: list[tuple[np.ndarray, np.ndarray]] = []
         for margin in config.search.region_margins:
             lo, hi = search_region(view.segments, prior, margin)
             if not any(np.array_equal(lo, a) and np.array_equal(hi, b) for a, b in regions):
