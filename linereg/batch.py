@@ -10,6 +10,8 @@ from __future__ import annotations
 
 import collections
 import itertools
+import multiprocessing
+import sys
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
@@ -47,12 +49,17 @@ class InlineRunner:
 class PoolRunner(InlineRunner):
     """A local process pool per call (``shared`` reaches each worker once, by its initializer)."""
 
-    def __init__(self, workers: int) -> None:
-        self.workers = workers
+    def __init__(self, workers: int, fork: bool = True) -> None:
+        self.workers, self.fork = workers, fork
 
     def _pool(self, shared: Any) -> tuple[ProcessPoolExecutor, str]:
         token = uuid.uuid4().hex
-        return ProcessPoolExecutor(self.workers, initializer=_keep, initargs=(token, shared)), token
+        # fork=False: workers start from a clean fork server, not forked from this process. A thread pool
+        # of this process (OpenCV's) does not survive fork, and a forked worker calling into it hangs.
+        method = "fork" if self.fork else "forkserver" if sys.platform == "linux" else "spawn"
+        context = multiprocessing.get_context(method)
+        pool = ProcessPoolExecutor(self.workers, context, initializer=_keep, initargs=(token, shared))
+        return pool, token
 
     def unordered(self, fn: Task, shared: Any, items: Iterable) -> Iterator[tuple[int, Any]]:
         pool, token = self._pool(shared)
@@ -62,8 +69,8 @@ class PoolRunner(InlineRunner):
             try:
                 while pending:
                     done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    for future in done:
-                        yield futures[future], future.result()
+                    for future in done:  # popped: a finished future holds its result until dropped
+                        yield futures.pop(future), future.result()
             finally:
                 for future in pending:
                     future.cancel()
@@ -107,8 +114,10 @@ class DaskRunner(InlineRunner):
         remote = self._scatter(shared)
         futures = {self.client.submit(fn, remote, item, pure=False): i for i, item in enumerate(items)}
         try:
-            for future in as_completed(futures):
-                yield futures[future], future.result()
+            for future in as_completed(
+                futures
+            ):  # popped: the cluster keeps a result while a future refers to it
+                yield futures.pop(future), future.result()
         finally:
             self.client.cancel(list(futures))
 
@@ -122,14 +131,15 @@ class DaskRunner(InlineRunner):
         self.client.close()
 
 
-def runner(workers: int = 1, scheduler: str | None = None) -> InlineRunner:
+def runner(workers: int = 1, scheduler: str | None = None, fork: bool = True) -> InlineRunner:
     """Returns the runner of a batch: a Dask cluster if ``scheduler`` is an address, else ``workers``
-    local processes (1: this process)."""
+    local processes (1: this process), forked from this one or (``fork=False``) started clean: slower to
+    start, but safe after this process ran OpenCV's thread pool."""
     if scheduler:
         return DaskRunner(scheduler)
     if workers < 1:
         raise InvalidInputError(f"--workers must be >= 1, got {workers}")
-    return PoolRunner(workers) if workers > 1 else InlineRunner()
+    return PoolRunner(workers, fork) if workers > 1 else InlineRunner()
 
 
 def _bounded_in_order(submit: Callable[[Any], Any], items: Iterable, ahead: int) -> Iterator[Any]:

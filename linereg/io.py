@@ -508,7 +508,10 @@ class CloudReader:
                 raise FileFormatError(
                     f"{self.path}: reading .laz needs a LAZ backend: pip install 'laspy[lazrs]'"
                 )
-            self.las = laspy.open(self.path)
+            # lazrs' multi-threaded backend deadlocks in a process forked after it ran (its thread pool
+            # does not survive fork, and pool workers fork from a parent that has read the cloud)
+            single = laspy.LazBackend.Lazrs
+            self.las = laspy.open(self.path, laz_backend=single if single.is_available() else None)
             return int(self.las.header.point_count)
         layout = _ply_layout(self.path) if suffix == ".ply" else None
         if layout is not None:

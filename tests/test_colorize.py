@@ -242,15 +242,17 @@ def test_colorize_on_a_dask_cluster_gives_the_local_answer(files, tmp_path):
     assert (tmp_path / "local.ply").read_bytes() == (tmp_path / "dask.ply").read_bytes()
 
 
-def test_process_pool_gives_the_inline_answer(files, tmp_path):
+@pytest.mark.parametrize("cloud", ["cloud.ply", "cloud.laz"])
+def test_process_pool_gives_the_inline_answer(files, tmp_path, cloud):
+    # LAZ: workers fork from a parent that has read the file (lazrs' thread pool must not be inherited)
     from linereg import batch
     from linereg.colorization import colorize_file, read_localized_photos
 
     photos = read_localized_photos(files / "poses.json", files / "camera.json", files)
     config = ColorizeConfig(chunk_points=3000)
-    colorize_file(files / "cloud.ply", tmp_path / "a.ply", photos, config)
-    with batch.runner(workers=2) as runner:
-        colorize_file(files / "cloud.ply", tmp_path / "b.ply", photos, config, runner)
+    colorize_file(files / cloud, tmp_path / "a.ply", photos, config)
+    with batch.runner(workers=2, fork=False) as runner:
+        colorize_file(files / cloud, tmp_path / "b.ply", photos, config, runner)
     assert (tmp_path / "a.ply").read_bytes() == (tmp_path / "b.ply").read_bytes()
 
 

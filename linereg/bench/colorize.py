@@ -290,7 +290,7 @@ def measure_throughput(scene: Any, num_points: int, num_photos: int, workers: in
         cloud = Path(folder) / "cloud.ply"
         write_jittered_ply(cloud, scene.cloud, num_points)
         start = time.perf_counter()
-        with batch.runner(workers) as runner:
+        with batch.runner(workers, fork=False) as runner:
             histogram = colorize_file(cloud, Path(folder) / "out.ply", photos, run=runner)
         seconds = time.perf_counter() - start
     return {

@@ -73,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
     io.open_cloud(args.cloud).close()  # readable, a known format, at least one point: before any work
     photos = read_localized_photos(args.poses, args.camera, args.images)
     start = time.perf_counter()
-    with batch.runner(args.workers, args.scheduler) as runner, _PassBars() as bars:
+    with batch.runner(args.workers, args.scheduler, fork=False) as runner, _PassBars() as bars:
         histogram = colorize_file(args.cloud, args.out, photos, config, runner, bars)
     total = int(histogram.sum())
     print(

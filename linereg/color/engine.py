@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, replace
 from typing import Any
@@ -29,7 +30,7 @@ from .surface import default_voxel_m, local_surface
 
 log = logging.getLogger(__name__)
 Progress = Callable[[str, int, int], None]  # (pass, tasks done, tasks in the pass)
-_readers: dict[str, Any] = {}  # FileSource: one open reader per file and process
+_readers: dict[tuple[str, int], Any] = {}  # FileSource: one open reader per file and process
 
 
 @dataclass(frozen=True)
@@ -56,9 +57,11 @@ class FileSource:
     def read(self, start: int, stop: int) -> np.ndarray:
         from .. import io
 
-        if self.path not in _readers:
-            _readers[self.path] = io.open_cloud(self.path)
-        return _readers[self.path].read(start, stop)
+        # keyed by process too: a forked worker must not share its parent's reader (one file offset)
+        key = (self.path, os.getpid())
+        if key not in _readers:
+            _readers[key] = io.open_cloud(self.path)
+        return _readers[key].read(start, stop)
 
 
 @dataclass(frozen=True)
