@@ -74,6 +74,7 @@ class SequenceConfig:
     relocalize_radius_m: float = 1.0
     max_relocalize_radius_m: float = 5.0
     relocalize_sigma_rot_deg: float = 5.0
+    relocalize_every: int = 5  # while lost, relocalize on every n-th frame (each costs 0.1 s to seconds)
     # without odometry after this many frames without a fix: global registration (no prior)
     global_after_frames: int = 10
     # without odometry, a random-walk prior between consecutive frames (never on unless asked)
@@ -238,7 +239,7 @@ def frames_alone(
         result = Registration(success=False, reason="not tried")
         if predicted is not None and len(lines[k]) >= config.register.min_lines2d:
             result = refine_from(image, line_map, camera, predicted, radius, config)
-        if not result.success:
+        if not result.success and (k - (fix[0] if fix else -1) - 1) % config.relocalize_every == 0:
             start = time.perf_counter()
             reloc = relocalize(lines[k], line_map, camera, predicted, radius, config)
             timings = {**reloc.timings, "relocalize": time.perf_counter() - start}

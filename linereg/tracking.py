@@ -65,7 +65,6 @@ class TrackingConfig:
     window: int = 50  # frames in the iSAM2 graph before it is re-anchored at the newest pose
     # a refined frame explaining less than this share of what the last 5 fixes explained is not a fix
     min_explained_ratio: float = 0.6
-    relocalize_every: int = 5  # while lost, relocalize on every n-th frame (each costs 0.1 s to seconds)
     relinearize_threshold: float = 0.01
 
 
@@ -148,7 +147,7 @@ class Tracker:
                 self.event = "tracked"
                 return self._add(image, tracked, step, cov)
         self._lost += 1
-        if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % self.config.relocalize_every == 0:
+        if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % cfg.relocalize_every == 0:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
             start = time.perf_counter()
             found = relocalize(lines, self.line_map, self._cam, near, radius, cfg)

@@ -22,6 +22,7 @@ BENCHMARKS: dict[str, str] = {
     "lines2d": "linereg.bench.lines2d:configure",
     "lines3d": "linereg.bench.lines3d:configure",
     "real": "linereg.bench.real:configure",
+    "sequence": "linereg.bench.sequence:configure",
     "colorize": "linereg.bench.colorize:configure",
 }
 
