@@ -187,7 +187,7 @@ class MapBuildConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MapBuildConfig:
         """Returns the default config with the keys of ``d`` (nested per section) overridden."""
-        return _override(cls(), d, "config")
+        return override(cls(), d, "config")
 
 
 @dataclass(frozen=True)
@@ -389,10 +389,12 @@ class RegisterConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> RegisterConfig:
         """Returns the default config with the keys of ``d`` (nested per section) overridden."""
-        return _override(cls(), d, "config")
+        return override(cls(), d, "config")
 
 
-def _override(obj: Any, d: dict[str, Any], path: str) -> Any:
+def override(obj: Any, d: dict[str, Any], path: str) -> Any:
+    """Returns the frozen dataclass ``obj`` with the keys of ``d`` replaced, nested dataclasses recursively;
+    an unknown key or a non-mapping raises InvalidInputError naming it by ``path`` (``config.score.nope``)."""
     if not isinstance(d, dict):
         raise InvalidInputError(f"{path} must be a mapping, got {type(d).__name__}")
     known = {f.name: f for f in fields(obj)}
@@ -401,5 +403,5 @@ def _override(obj: Any, d: dict[str, Any], path: str) -> Any:
         if key not in known:
             raise InvalidInputError(f"unknown option {path}.{key}; known: {', '.join(known)}")
         current = getattr(obj, key)
-        changes[key] = _override(current, value, f"{path}.{key}") if is_dataclass(current) else value
+        changes[key] = override(current, value, f"{path}.{key}") if is_dataclass(current) else value
     return replace(obj, **changes)

@@ -2,10 +2,10 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field, fields, is_dataclass, replace
+from dataclasses import dataclass, field
 from typing import Any
 
-from ..errors import InvalidInputError
+from ..config import override
 
 
 @dataclass(frozen=True)
@@ -85,17 +85,4 @@ class ColorizeConfig:
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> ColorizeConfig:
         """Returns the default config with the keys of ``d`` (nested per section) overridden."""
-        return _override(cls(), d, "config")
-
-
-def _override(obj: Any, d: Any, path: str) -> Any:
-    if not isinstance(d, dict):
-        raise InvalidInputError(f"{path} must be a mapping, got {type(d).__name__}")
-    known = {f.name for f in fields(obj)}
-    changes = {}
-    for key, value in d.items():
-        if key not in known:
-            raise InvalidInputError(f"unknown option {path}.{key}; known: {', '.join(sorted(known))}")
-        current = getattr(obj, key)
-        changes[key] = _override(current, value, f"{path}.{key}") if is_dataclass(current) else value
-    return replace(obj, **changes)
+        return override(cls(), d, "config")
