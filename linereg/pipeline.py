@@ -11,7 +11,9 @@ then   the decision: a pose is an answer only when no distinct pose comes close 
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 
@@ -19,7 +21,7 @@ from .camera import Camera
 from .config import DecideConfig, RegisterConfig
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .geometry import camera_center, make_cam_from_world, rotation_error_deg
+from .geometry import camera_center, rotation_error_deg
 from .parallel import parallel_clusters
 from .points import Points, image_points, map_gap_m, map_points
 from .priors import Prior, admits, search_region
@@ -32,6 +34,7 @@ from .timing import StageTimer
 from .vanishing import vanishing_directions
 
 log = logging.getLogger(__name__)
+_Item = TypeVar("_Item")
 
 
 def register(
@@ -139,7 +142,7 @@ def register_undistorted(
             refine_pose(
                 image, view.segments, camera, f.cam_from_world, config.refine, config.score, view.visible
             )
-            for f in _distinct(found, view.segments, config.decide)[: config.decide.contenders]
+            for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
     return decide(refined, found, view.segments, image.total_length, config, timer)
 
@@ -160,7 +163,8 @@ def decide(
     rivals = [(r.cam_from_world, r.score.value) for r in refined[1:]]
     rivals += [(f.cam_from_world, f.score.value) for f in found]
     rivals = [(T, s) for T, s in rivals if _differs(T, best.cam_from_world, lines3d, dc)]
-    alternatives = _distinct_poses(rivals, lines3d, dc)[:8]
+    rivals.sort(key=lambda p: -p[1])
+    alternatives = _distinct(rivals, _first, lines3d, dc)[:8]
     runner_up = max((s for _, s in alternatives), default=0.0)
     matches = best.score.matches(dc.min_cover)
     explained = best.score.explained_length / max(image_length, 1e-9)
@@ -194,24 +198,23 @@ def decide(
     )
 
 
-def _distinct(found: list[Found], lines3d: np.ndarray, dc: DecideConfig) -> list[Found]:
-    """Returns the found poses that differ from every better one, best first."""
-    kept: list[Found] = []
-    for f in found:
-        if all(_differs(f.cam_from_world, k.cam_from_world, lines3d, dc) for k in kept):
-            kept.append(f)
+def _distinct(
+    items: list[_Item], pose: Callable[[_Item], np.ndarray], lines3d: np.ndarray, dc: DecideConfig
+) -> list[_Item]:
+    """Returns the items (best first) whose ``pose(item)`` differs from that of every better one kept."""
+    kept: list[_Item] = []
+    for item in items:
+        if all(_differs(pose(item), pose(k), lines3d, dc) for k in kept):
+            kept.append(item)
     return kept
 
 
-def _distinct_poses(
-    poses: list[tuple[np.ndarray, float]], lines3d: np.ndarray, dc: DecideConfig
-) -> list[tuple[np.ndarray, float]]:
-    """Returns (pose, score) pairs that differ from every better one, best first."""
-    kept: list[tuple[np.ndarray, float]] = []
-    for T, s in sorted(poses, key=lambda p: -p[1]):
-        if all(_differs(T, K, lines3d, dc) for K, _ in kept):
-            kept.append((T, s))
-    return kept
+def _found_pose(f: Found) -> np.ndarray:
+    return f.cam_from_world
+
+
+def _first(pair: tuple[np.ndarray, float]) -> np.ndarray:
+    return pair[0]
 
 
 def _differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig) -> bool:
@@ -224,8 +227,3 @@ def _differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig
     depth = depth[depth > 0]
     scale = float(np.median(depth)) if len(depth) else 1.0
     return float(np.linalg.norm(camera_center(a) - camera_center(b))) > dc.distinct_fraction * scale
-
-
-def pose_of(R: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Returns the (4, 4) cam_from_world of a world -> camera rotation and a (3,) camera centre."""
-    return make_cam_from_world(R, -R @ centre)
