@@ -13,3 +13,12 @@ def camera() -> linereg.Camera:
 @pytest.fixture
 def rng() -> np.random.Generator:
     return np.random.default_rng(1234)
+
+
+def save_box_map(path) -> None:
+    """Saves a small LineMap at ``path``: the twelve edges of a 4 x 3 x 2 m box (for CLI input checks)."""
+    from linereg.map.linemap import LineMap
+
+    corners = np.array([[x, y, z] for x in (0, 4) for y in (0, 3) for z in (0, 2)], float)
+    pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
+    LineMap.from_segments(np.array([np.r_[corners[i], corners[j]] for i, j in pairs])).save(path)

@@ -9,6 +9,7 @@ import json
 import cv2
 import numpy as np
 import pytest
+from conftest import save_box_map
 
 from linereg.cli import main
 from linereg.registration import Registration
@@ -24,15 +25,10 @@ class Killed(BaseException):
 @pytest.fixture(scope="module")
 def batch_files(tmp_path_factory):
     """A small map, a camera file and NUM_IMAGES images numbered in their first two pixels."""
-    from linereg.map.linemap import LineMap
     from linereg.sim.views import street_camera
 
     folder = tmp_path_factory.mktemp("batch")
-    corners = np.array([[x, y, z] for x in (0, 4) for y in (0, 3) for z in (0, 2)], float)
-    pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
-    LineMap.from_segments(np.array([np.r_[corners[i], corners[j]] for i, j in pairs])).save(
-        folder / "map.npz"
-    )
+    save_box_map(folder / "map.npz")
     (folder / "camera.json").write_text(json.dumps(street_camera().to_dict()))
     images = []
     for k in range(NUM_IMAGES):

@@ -8,6 +8,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+from conftest import save_box_map
 
 from linereg import localize
 from linereg.cli import main
@@ -199,15 +200,10 @@ def test_map_info_rejects_a_corrupt_map(tmp_path, capsys):
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     """A small map (the edges of a box), a 640x480 camera file and a valid image, for the bad-input cases."""
-    from linereg.map.linemap import LineMap
     from linereg.sim.views import street_camera
 
     folder = tmp_path_factory.mktemp("small")
-    corners = np.array([[x, y, z] for x in (0, 4) for y in (0, 3) for z in (0, 2)], float)
-    pairs = [(i, j) for i in range(8) for j in range(i + 1, 8) if bin(i ^ j).count("1") == 1]
-    LineMap.from_segments(np.array([np.r_[corners[i], corners[j]] for i, j in pairs])).save(
-        folder / "small.npz"
-    )
+    save_box_map(folder / "small.npz")
     (folder / "camera.json").write_text(json.dumps(street_camera().to_dict()))
     assert cv2.imwrite(str(folder / "ok.png"), np.full((480, 640), 100, np.uint8))
     return folder
