@@ -146,7 +146,17 @@ def test_full_queue_answers_busy():
                 codes.append(e.code)
 
         threads = [threading.Thread(target=slow) for _ in range(4)]
-        for t in threads:
+        threads[0].start()
+        for _ in range(100):  # the worker has taken the first query: the queue is empty again
+            if svc.pool.in_flight == 1 and svc.pool.jobs.qsize() == 0:
+                break
+            time.sleep(0.02)
+        threads[1].start()
+        for _ in range(100):  # the second waits in the queue
+            if svc.pool.jobs.qsize() == 1:
+                break
+            time.sleep(0.02)
+        for t in threads[2:]:
             t.start()
         for t in threads:
             t.join(10)
