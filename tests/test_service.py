@@ -106,8 +106,16 @@ def test_crashed_and_killed_workers_answer_internal_and_are_replaced(client, ser
             result["code"] = err.code
 
     thread = threading.Thread(target=slow_query)
+    for _ in range(150):  # the previous tests' slow queries are done
+        if not service.pool.in_flight:
+            break
+        time.sleep(0.02)
     thread.start()
-    time.sleep(0.5)
+    for _ in range(150):  # a worker has taken the slow query
+        if service.pool.in_flight:
+            break
+        time.sleep(0.02)
+    time.sleep(0.1)
     for pid in service.pool.pids():  # one of them is processing the slow query
         with contextlib.suppress(ProcessLookupError):  # the crashed one may still be being replaced
             os.kill(pid, signal.SIGKILL)
