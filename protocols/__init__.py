@@ -18,6 +18,7 @@ from .codec import (
 )
 from .errors import ERROR_CODES, ProtocolError
 from .messages import PROTOCOL_VERSION, Error, Limits, LocalizeReply, LocalizeRequest, Prior
+from .session import SessionClose, SessionClosed, SessionOpen, SessionOpened, TrackReply, TrackRequest
 
 __all__ = [
     "ERROR_CODES",
@@ -28,6 +29,12 @@ __all__ = [
     "LocalizeRequest",
     "Prior",
     "ProtocolError",
+    "SessionClose",
+    "SessionClosed",
+    "SessionOpen",
+    "SessionOpened",
+    "TrackReply",
+    "TrackRequest",
     "decode_array",
     "decode_error",
     "decode_reply",

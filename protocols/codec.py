@@ -90,23 +90,36 @@ def request_id(payload: bytes) -> str:
 def encode_request(req: LocalizeRequest) -> bytes:
     """Returns the wire bytes of a LocalizeRequest."""
     body: dict = {"id": req.id, "camera": req.camera.to_dict()}
-    if req.image is not None:
-        if req.image_format == "raw":
-            body["image"] = {"format": "raw", "pixels": encode_array(np.asarray(req.image))}
-        else:
-            body["image"] = {"format": req.image_format, "data": bytes(req.image)}  # type: ignore[arg-type]
-    if req.segments is not None:
-        body["segments"] = encode_array(np.asarray(req.segments, dtype=np.float64))
+    body |= frame_fields(req.image, req.image_format, req.segments)
     if req.prior is not None:
-        body["prior"] = _encode_prior(req.prior)
-    options: dict = {"return_matches": bool(req.return_matches)}
-    if req.deadline_ms is not None:
-        options["deadline_ms"] = int(req.deadline_ms)
-    body["options"] = options
+        body["prior"] = encode_prior(req.prior)
+    body["options"] = options_fields(req.deadline_ms, req.return_matches)
     return pack("localize_request", body)
 
 
-def _encode_prior(prior: Prior) -> dict:
+def frame_fields(image: bytes | np.ndarray | None, image_format: str, segments: np.ndarray | None) -> dict:
+    """Returns the ``image`` and/or ``segments`` fields of a frame (a request's or a tracking step's)."""
+    body: dict = {}
+    if image is not None:
+        if image_format == "raw":
+            body["image"] = {"format": "raw", "pixels": encode_array(np.asarray(image))}
+        else:
+            body["image"] = {"format": image_format, "data": bytes(image)}  # type: ignore[arg-type]
+    if segments is not None:
+        body["segments"] = encode_array(np.asarray(segments, dtype=np.float64))
+    return body
+
+
+def options_fields(deadline_ms: int | None, return_matches: bool) -> dict:
+    """Returns the ``options`` map: ``return_matches`` always, ``deadline_ms`` when set."""
+    options: dict = {"return_matches": bool(return_matches)}
+    if deadline_ms is not None:
+        options["deadline_ms"] = int(deadline_ms)
+    return options
+
+
+def encode_prior(prior: Prior) -> dict:
+    """Returns the wire ``prior`` map of a Prior."""
     out: dict = {}
     if prior.position is not None:
         out |= {"position": [float(x) for x in prior.position], "radius_m": float(prior.radius_m)}
@@ -126,25 +139,36 @@ def _encode_prior(prior: Prior) -> dict:
 
 def decode_request(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> LocalizeRequest:
     """Returns the validated LocalizeRequest in ``payload``; ProtocolError with the code to answer otherwise."""
-    doc = unpack(payload, limits)
-    if doc["type"] != "localize_request":
-        raise ProtocolError("bad_request", f"expected a localize_request, got {doc['type'][:40]!r}")
+    doc = expect(payload, "localize_request", limits)
     req_id = text(doc, "id", limits.max_id_chars)
-    camera = _decode_camera(require(doc, "camera", dict), limits)
+    camera = decode_camera(require(doc, "camera", dict), limits)
+    image, image_format, segments = decode_frame(doc, camera, limits)
+    prior = decode_prior(optional(doc, "prior", dict))
+    deadline, return_matches = decode_options(doc, limits)
+    return LocalizeRequest(req_id, camera, image, image_format, segments, prior, deadline, return_matches)
+
+
+def decode_frame(
+    doc: dict, camera: Camera, limits: Limits
+) -> tuple[bytes | np.ndarray | None, str, np.ndarray | None]:
+    """Returns (image, image format, segments) of a message holding exactly one of ``image``, ``segments``."""
     image, image_format = _decode_image(optional(doc, "image", dict), camera, limits)
     segments = _decode_segments(doc.get("segments"), camera, limits)
     if (image is None) == (segments is None):
         raise ProtocolError("bad_request", "exactly one of 'image' and 'segments' must be given")
-    prior = _decode_prior(optional(doc, "prior", dict))
+    return image, image_format, segments
+
+
+def decode_options(doc: dict, limits: Limits) -> tuple[int | None, bool]:
+    """Returns (deadline_ms or None, return_matches) of a message's ``options`` map."""
     options = optional(doc, "options", dict) or {}
     deadline = optional(options, "deadline_ms", int)
     if deadline is not None and not 0 < deadline <= limits.max_deadline_ms:
         raise ProtocolError("bad_request", f"options.deadline_ms must be in (0, {limits.max_deadline_ms}]")
-    return_matches = optional(options, "return_matches", bool) or False
-    return LocalizeRequest(req_id, camera, image, image_format, segments, prior, deadline, return_matches)
+    return deadline, optional(options, "return_matches", bool) or False
 
 
-def _decode_camera(d: dict, limits: Limits) -> Camera:
+def decode_camera(d: dict, limits: Limits) -> Camera:
     """Returns the Camera of a wire camera map (strict: numbers must be numbers, not strings)."""
     values: dict = {k: number(d, k, f"camera.{k}") for k in ("fx", "fy", "cx", "cy")}
     size: dict = {k: require(d, k, int, f"camera.{k}") for k in ("width", "height")}
@@ -200,7 +224,7 @@ def _decode_segments(obj: object, camera: Camera, limits: Limits) -> np.ndarray 
     return lines
 
 
-def _decode_prior(d: dict | None) -> Prior | None:
+def decode_prior(d: dict | None) -> Prior | None:
     """Returns the Prior of a wire prior map: a position with radius, or a pose with sigmas (or neither),
     and optionally gravity (a unit vector in the camera frame) with its sigma."""
     if d is None:
@@ -250,7 +274,12 @@ def _three(d: dict, key: str, name: str) -> np.ndarray:
 
 def encode_reply(rep: LocalizeReply) -> bytes:
     """Returns the wire bytes of a LocalizeReply."""
-    body = {
+    return pack("localize_reply", reply_fields(rep))
+
+
+def reply_fields(rep: LocalizeReply) -> dict:
+    """Returns the fields of a LocalizeReply's message (a ``track_reply`` has them too)."""
+    return {
         "id": rep.id,
         "status": "ok" if rep.success else "not_localized",
         "reason": rep.reason,
@@ -268,14 +297,23 @@ def encode_reply(rep: LocalizeReply) -> bytes:
         "timings": {str(k): float(v) for k, v in rep.timings.items()},
         "map": {"name": rep.map_name, "id": rep.map_id, "version": rep.map_version},
     }
-    return pack("localize_reply", body)
 
 
 def decode_reply(payload: bytes, limits: Limits = _DEFAULT_LIMITS) -> LocalizeReply:
     """Returns the validated LocalizeReply in ``payload``; ProtocolError otherwise."""
+    return reply_of(expect(payload, "localize_reply", limits), limits)
+
+
+def expect(payload: bytes, kind: str, limits: Limits = _DEFAULT_LIMITS) -> dict:
+    """Returns the top-level map of a message of type ``kind``; ProtocolError otherwise."""
     doc = unpack(payload, limits)
-    if doc["type"] != "localize_reply":
-        raise ProtocolError("bad_request", f"expected a localize_reply, got {doc['type'][:40]!r}")
+    if doc["type"] != kind:
+        raise ProtocolError("bad_request", f"expected a {kind}, got {doc['type'][:40]!r}")
+    return doc
+
+
+def reply_of(doc: dict, limits: Limits) -> LocalizeReply:
+    """Returns the LocalizeReply of a decoded reply map (``localize_reply`` or ``track_reply``)."""
     status = require(doc, "status", str)
     if status not in ("ok", "not_localized"):
         raise ProtocolError("bad_request", f"status must be 'ok' or 'not_localized', got {status[:40]!r}")
@@ -327,9 +365,7 @@ def encode_error(err: Error) -> bytes:
 
 def decode_error(payload: bytes) -> Error:
     """Returns the Error in ``payload``; ProtocolError if it is not one."""
-    doc = unpack(payload)
-    if doc["type"] != "error":
-        raise ProtocolError("bad_request", f"expected an error, got {doc['type'][:40]!r}")
+    doc = expect(payload, "error")
     return Error(
         code=require(doc, "code", str), message=optional(doc, "message", str) or "", id=doc.get("id") or ""
     )

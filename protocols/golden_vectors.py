@@ -16,6 +16,16 @@ from linereg.camera import Camera
 
 from .codec import encode_error, encode_reply, encode_request, pack
 from .messages import Error, LocalizeReply, LocalizeRequest, Prior
+from .session import (
+    ENCODERS,
+    SessionClose,
+    SessionClosed,
+    SessionOpen,
+    SessionOpened,
+    TrackReply,
+    TrackRequest,
+    encode_session_message,
+)
 
 GOLDEN_DIR = Path(__file__).parent / "golden"
 _CAMERA = Camera(fx=8.0, fy=8.0, cx=3.5, cy=2.5, width=8, height=6, dist=(-0.1, 0.01, 0.0, 0.0))
@@ -93,6 +103,32 @@ def messages() -> dict[str, object]:
             "req-1", False, "too few segments", map_name="campus", map_version="3"
         ),
         "error_busy": Error("busy", "queue full (8 waiting)", "req-2"),
+    } | session_messages(pose, segments, cov)
+
+
+def session_messages(pose: np.ndarray, segments: np.ndarray, cov: np.ndarray) -> dict[str, object]:
+    """Returns name -> message of the tracking-session vectors."""
+    step = np.array([[1.0, 0, 0, 0.0], [0, 0, -1, 0.0], [0, 1, 0, 0.5], [0, 0, 0, 1]])  # 90 deg, 0.5 m
+    tracked = LocalizeReply(
+        "trk-2", True, "", pose, cov, num_inliers=40, score=5000.0, explained_fraction=0.75,
+        rms_px=0.5, timings={"step": 0.009}, map_name="campus", map_version="3", map_id="5f0c2a9e",
+    )  # fmt: skip
+    predicted = LocalizeReply("trk-3", False, "from neighbours: 1 frame(s) predicted", pose, cov)
+    session = "0123456789abcdef"
+    return {
+        "session_open": SessionOpen(
+            "open-1", _CAMERA, Prior(cam_from_world=pose, sigma_rot_deg=2.0, sigma_pos_m=0.25)
+        ),
+        "session_opened": SessionOpened("open-1", session, "host-1a2b", 60.0, "campus", "3", "5f0c2a9e"),
+        "track_request_png": TrackRequest("trk-1", session, tiny_png(_pixels()), "png", timestamp=0.0),
+        "track_request_segments_odometry": TrackRequest(
+            "trk-2", session, segments=segments, relative_pose=step, timestamp=0.1, deadline_ms=500
+        ),
+        "track_reply_tracked": TrackReply(tracked, session, 1, "tracked"),
+        "track_reply_predicted_restarted": TrackReply(predicted, session, 2, "predicted", restarted=True),
+        "session_close": SessionClose("close-1", session),
+        "session_closed": SessionClosed("close-1", session, 3),
+        "error_unknown_session": Error("unknown_session", "no session 0123456789abcdef here", "trk-4"),
     }
 
 
@@ -102,6 +138,8 @@ def encode(message: object) -> bytes:
         return encode_request(message)
     if isinstance(message, LocalizeReply):
         return encode_reply(message)
+    if type(message) in ENCODERS:
+        return encode_session_message(message)
     return encode_error(message)  # type: ignore[arg-type]
 
 

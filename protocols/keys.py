@@ -33,6 +33,18 @@ def tile_localize_key(map_name: str, tile: str) -> str:
     return f"{PREFIX}/{check_chunk(map_name, 'map name')}/tile/{tile}/localize"
 
 
+def session_key(map_name: str) -> str:
+    """Returns the key opening a tracking session on any instance serving the map."""
+    return f"{PREFIX}/{check_chunk(map_name, 'map name')}/session"
+
+
+def instance_session_key(map_name: str, instance: str) -> str:
+    """Returns the tracking-session key of one instance (a session's frames all go to its instance)."""
+    return (
+        f"{PREFIX}/{check_chunk(map_name, 'map name')}/instance/{check_chunk(instance, 'instance')}/session"
+    )
+
+
 def info_key(map_name: str) -> str:
     """Returns the key answering the map's metadata."""
     return f"{PREFIX}/{check_chunk(map_name, 'map name')}/info"

@@ -12,7 +12,7 @@ from hypothesis import strategies as st
 
 import protocols
 from linereg import Camera
-from protocols import Limits, LocalizeRequest, ProtocolError, keys
+from protocols import Limits, LocalizeRequest, ProtocolError, keys, session
 from protocols.golden_vectors import GOLDEN_DIR, bad_vectors, encode, messages, tiny_png
 
 CAMERA = Camera(fx=8.0, fy=8.0, cx=3.5, cy=2.5, width=8, height=6)
@@ -20,8 +20,13 @@ CAMERA = Camera(fx=8.0, fy=8.0, cx=3.5, cy=2.5, width=8, height=6)
 
 def _decode(data: bytes):
     kind = protocols.unpack(data)["type"]
+    golden_camera = messages()["session_open"].camera  # the session of the track_request vectors
     return {"localize_request": protocols.decode_request, "localize_reply": protocols.decode_reply,
-            "error": lambda b: protocols.decode_error(b)}[kind](data)  # fmt: skip
+            "error": lambda b: protocols.decode_error(b), "session_open": session.decode_session_open,
+            "session_opened": session.decode_session_opened,
+            "track_request": lambda b: session.decode_track_request(b, golden_camera),
+            "track_reply": session.decode_track_reply, "session_close": session.decode_session_close,
+            "session_closed": session.decode_session_closed}[kind](data)  # fmt: skip
 
 
 def _same(a: object, b: object) -> bool:
@@ -183,9 +188,50 @@ def _equal(a, b) -> bool:
     return bool(a == b)
 
 
+def _track_request(**overrides) -> bytes:
+    doc = msgpack.unpackb(encode(messages()["track_request_segments_odometry"]), raw=False)
+    return msgpack.packb({k: v for k, v in (doc | overrides).items() if v is not None}, use_bin_type=True)
+
+
+@pytest.mark.parametrize(
+    ("overrides", "code"),
+    [
+        ({"session": None}, "bad_request"),
+        ({"session": "s" * 65}, "too_large"),
+        ({"relative_pose": protocols.encode_array(np.full((4, 4), np.nan))}, "bad_request"),
+        ({"relative_pose": protocols.encode_array(np.eye(3))}, "bad_request"),
+        ({"timestamp": float("nan")}, "bad_request"),
+        ({"timestamp": "0.5"}, "bad_request"),
+        ({"segments": None}, "bad_request"),  # no frame
+        ({"image": {"format": "raw", "pixels": protocols.encode_array(np.zeros((6, 9), np.uint8))}}, "bad_request"),
+        ({"segments": None, "image": {"format": "raw", "pixels": protocols.encode_array(np.zeros((5, 8), np.uint8))}},
+         "bad_request"),  # the session camera's size is 8 x 6
+    ],
+)  # fmt: skip
+def test_track_request_decoder_answers_the_right_code(overrides, code):
+    camera = messages()["session_open"].camera
+    with pytest.raises(ProtocolError) as e:
+        session.decode_track_request(_track_request(**overrides), camera)
+    assert e.value.code == code, e.value.message
+
+
+def test_session_messages_name_their_session_and_a_start_must_be_a_pose():
+    assert session.session_of(encode(messages()["track_request_png"])) == (
+        "track_request",
+        "0123456789abcdef",
+    )
+    assert session.session_of(encode(messages()["session_open"])) == ("session_open", "")
+    with pytest.raises(ProtocolError):
+        session.session_of(encode(messages()["request_png"]))
+    position_start = protocols.SessionOpen("o", CAMERA, protocols.Prior(position=np.zeros(3), radius_m=1.0))
+    with pytest.raises(ProtocolError, match="pose"):
+        session.decode_session_open(session.encode_session_open(position_start))
+
+
 def test_keys_are_single_chunks():
     assert keys.localize_key("campus") == "linereg/campus/localize"
     assert keys.instance_of_alive_key(keys.alive_key("campus", "a1")) == ("campus", "a1")
+    assert keys.instance_session_key("campus", "a1") == "linereg/campus/instance/a1/session"
     for bad in ("a/b", "*", "", "x" * 65, "a b"):
         with pytest.raises(ValueError):
             keys.localize_key(bad)
