@@ -12,6 +12,7 @@ from typing import Any
 _LAZY = {
     "Client": "service.client",
     "ServiceError": "service.client",
+    "TrackingSession": "service.client",
     "Service": "service.server",
     "ServiceConfig": "service.server",
     "run": "service.server",

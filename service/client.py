@@ -2,6 +2,9 @@
 
 with Client(connect="tcp/127.0.0.1:7447") as client:
     reg = client.localize(image, camera, timeout=5.0)   # image: (H, W[, C]) uint8 array, path or PNG/JPEG bytes
+    with client.open_session(camera) as session:         # live tracking: one tracker in the service
+        for frame, odometry in stream:                   # frame: an image or (N, 4) float64 segments
+            reg = session.step(frame, relative_pose=odometry)   # session.event: tracked, relocalized, ...
 """
 
 from __future__ import annotations
@@ -10,7 +13,7 @@ import itertools
 import os
 import time
 import uuid
-from collections.abc import Sequence
+from collections.abc import Callable, Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -20,7 +23,7 @@ import protocols
 from linereg.camera import Camera
 from linereg.errors import LineregError
 from linereg.registration import Registration
-from protocols import LocalizeRequest, keys
+from protocols import LocalizeRequest, keys, session
 from protocols.images import JPEG_MAGIC, PNG_MAGIC
 
 from .zconfig import DEFAULT_ENDPOINT, session_config
@@ -67,6 +70,7 @@ class Client:
         self._ids = itertools.count()
         self._prefix = f"{os.getpid()}-{uuid.uuid4().hex[:6]}"
         self._instances: itertools.cycle | None = None
+        self._opened = itertools.count()  # tracking sessions opened: spread over the instances
 
     def __enter__(self) -> Client:
         return self
@@ -144,6 +148,28 @@ class Client:
         best = max(answers, key=lambda a: (a.success, a.score))
         return best.to_registration()
 
+    def open_session(self, camera: Camera, start=None, timeout: float = 10.0) -> TrackingSession:
+        """Returns a tracking session for frames of ``camera`` on one live instance (in turn over them);
+        ``start``: a pose prior (``linereg.Prior(cam_from_world=..., sigma_rot_deg=..., sigma_pos_m=...)``)
+        where tracking begins, else the first frame is registered globally."""
+        instances = self.check_served()
+        instance = instances[next(self._opened) % len(instances)]
+        msg = protocols.SessionOpen(self._next_id(), camera, None if start is None else wire_prior(start))
+        reply = self._ask(
+            keys.instance_session_key(self.map_name, instance), session.encode_session_open(msg), timeout
+        )
+        return TrackingSession(self, session.decode_session_opened(reply))
+
+    def track(self, frames, camera: Camera, relative_poses=None, timestamps=None, start=None,
+              timeout: float = 10.0) -> Iterator[Registration]:  # fmt: skip
+        """Yields the Registration of each frame through one tracking session (opened and closed here);
+        ``relative_poses[k]``: (4, 4) ``cam_k-1_from_cam_k`` of frame k (ignored for the first frame)."""
+        with self.open_session(camera, start, timeout) as tracking:
+            for k, frame in enumerate(frames):
+                relative = None if relative_poses is None or k == 0 else relative_poses[k]
+                stamp = None if timestamps is None else float(timestamps[k])
+                yield tracking.step(frame, relative, stamp, timeout)
+
     def info(self, timeout: float = 5.0) -> dict:
         """Returns the served map's metadata (name, version, bounds, ...)."""
         return self._document(keys.info_key(self.map_name), timeout)["map"]
@@ -177,15 +203,24 @@ class Client:
         return keys.instance_localize_key(self.map_name, instance)
 
     def _localize(self, req: LocalizeRequest, timeout: float) -> Registration:
-        payload = protocols.encode_request(req)
+        # with balance, a retry goes to the next instance
+        reply = self._ask(self._localize_key, protocols.encode_request(req), timeout, RETRYABLE)
+        return protocols.decode_reply(reply).to_registration()
+
+    def _ask(
+        self, key: str | Callable[[], str], payload: bytes, timeout: float, retry_on=("busy", "internal")
+    ) -> bytes:
+        """Returns the normal reply of a query on ``key`` (or on ``key()`` each attempt), retried up to
+        ``retries`` times after an error coded ``retry_on`` (a tracking frame never after ``timeout``: it
+        may have been processed); ServiceError otherwise."""
         for attempt in range(self.retries + 1):
             try:
-                ok, reply = self.request(self._localize_key(), payload, timeout)
+                ok, reply = self.request(key() if callable(key) else key, payload, timeout)
                 if ok:
-                    return protocols.decode_reply(reply).to_registration()
+                    return reply
                 raise _error_of(reply)
-            except ServiceError as e:  # with balance, a retry goes to the next instance
-                if e.code not in RETRYABLE or attempt == self.retries:
+            except ServiceError as e:
+                if e.code not in retry_on or attempt == self.retries:
                     raise
         raise AssertionError("unreachable")
 
@@ -194,6 +229,61 @@ class Client:
         if not ok:
             raise _error_of(payload)
         return protocols.unpack(payload)
+
+
+class TrackingSession:
+    """A tracking session in the service (``Client.open_session``): ``step`` like ``linereg.Tracker``'s.
+
+    After each step: ``event`` says how the pose was obtained (initialized, tracked, relocalized,
+    predicted, lost), ``restarted`` whether the service had to make the tracker again (its worker was
+    lost: this frame was registered globally), ``frames`` how many frames were answered.
+    """
+
+    def __init__(self, client: Client, opened: protocols.SessionOpened) -> None:
+        self.client, self.id, self.instance = client, opened.session, opened.instance
+        self.idle_timeout_s = opened.idle_timeout_s
+        self.key = keys.instance_session_key(client.map_name, opened.instance)
+        self.event, self.restarted, self.frames = "none", False, 0
+
+    def __enter__(self) -> TrackingSession:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    def step(self, frame, relative_pose=None, timestamp: float | None = None, timeout: float = 10.0,
+             return_matches: bool = True) -> Registration:  # fmt: skip
+        """Returns the Registration of the next frame: (N, 4) float64 segments, or an image ((H, W[, C])
+        uint8 array, PNG/JPEG bytes or a path) of the session camera's size; ``relative_pose``: the
+        measured (4, 4) ``cam_prev_from_cam_this``; ``timestamp``: seconds, increasing."""
+        segments = _segments_or_none(frame)
+        image, fmt = (None, "") if segments is not None else encode_image(frame)
+        relative = None if relative_pose is None else np.asarray(relative_pose, dtype=np.float64)
+        msg = protocols.TrackRequest(self.client._next_id(), self.id, image, fmt, segments, relative,
+                                     timestamp, _deadline_ms(timeout), return_matches)  # fmt: skip
+        reply = session.decode_track_reply(
+            self.client._ask(self.key, session.encode_track_request(msg), timeout)
+        )
+        self.event, self.restarted, self.frames = reply.how, reply.restarted, reply.frame + 1
+        return reply.reply.to_registration()
+
+    def close(self, timeout: float = 5.0) -> int:
+        """Closes the session; returns the frames it answered (0 if it had expired already)."""
+        msg = protocols.SessionClose(self.client._next_id(), self.id)
+        try:
+            reply = self.client._ask(self.key, session.encode_session_close(msg), timeout)
+        except ServiceError as e:
+            if e.code != "unknown_session":
+                raise
+            return 0
+        return session.decode_session_closed(reply).frames
+
+
+def _segments_or_none(frame) -> np.ndarray | None:
+    """Returns ``frame`` as (N, 4) float64 segments if it is a float array of 4 columns, else None (an image)."""
+    if isinstance(frame, np.ndarray) and frame.ndim == 2 and frame.shape[1] == 4 and frame.dtype.kind == "f":
+        return np.asarray(frame, dtype=np.float64)
+    return None
 
 
 def _deadline_ms(timeout_s: float) -> int:
@@ -249,9 +339,10 @@ def wire_prior(prior) -> protocols.Prior | None:
     if prior is None:
         return None
     if getattr(prior, "cam_from_world", None) is not None:  # a pose prior (its position is derived from it)
+        rot_deg = prior.sigma_rot_deg
         return protocols.Prior(
             cam_from_world=np.asarray(prior.cam_from_world, dtype=np.float64),
-            sigma_rot_deg=float(prior.sigma_rot_deg),
+            sigma_rot_deg=5.0 if rot_deg is None else float(rot_deg),  # None: the library Prior's default
             sigma_pos_m=float(prior.sigma_pos_m),
         )
     return protocols.Prior(

@@ -13,6 +13,9 @@ class Engine:
 
     localize(image (H, W) uint8, line_map, camera, config=None, prior=None) -> Registration
     localize_segments(lines2d (N, 4) float64, line_map, camera, config=None, prior=None) -> Registration
+    tracker(line_map, camera) -> an object with ``step(frame, relative_pose=None, timestamp=None) ->
+        Registration``, ``start_at(cam_from_world, sigma_rot_deg, sigma_pos_m)`` and ``event`` (as
+        ``linereg.Tracker``); None: this engine serves no tracking sessions
     """
 
     line_map: object
@@ -23,6 +26,7 @@ class Engine:
     info: dict = field(default_factory=dict)
     config: object = None
     map_id: str = ""  # unique id of the map's content (LineMap.info()["map_id"])
+    tracker: Callable | None = None
 
 
 def load_engine(spec: str, args: tuple) -> Engine:
@@ -70,4 +74,5 @@ def _engine(line_map, name: str, info: dict) -> Engine:
     version = str(info.get("version", info.get("format_version", "")))
     engine = Engine(line_map, linereg.localize, linereg.localize_segments, name, version, info)
     engine.map_id = str(info.get("map_id", ""))
+    engine.tracker = linereg.Tracker
     return engine

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import os
 import time
+from dataclasses import replace
 
 import numpy as np
 
@@ -73,6 +74,42 @@ def fake_localize_segments(lines2d, line_map, camera, config=None, prior=None) -
     return _registration(lines2d)
 
 
+def expected_track_pose(data: np.ndarray, steps: int) -> np.ndarray:
+    """Returns the (4, 4) pose the fake tracker answers for ``data`` as its ``steps``-th frame (from 1)."""
+    pose = expected_pose(data)
+    pose[2, 3] = float(steps)  # which tracker answered: a new one counts from 1 again
+    return pose
+
+
+class FakeTracker:
+    """A stand-in for ``linereg.Tracker``: the pose encodes the frame and the steps this tracker object made
+    (``expected_track_pose``); segment codes as above (-1 crash, -2 sleep, -3 raise, -4 no fix: the pose
+    "predicted"); a relative pose is checked like the real tracker's."""
+
+    def __init__(self, line_map, camera, config=None) -> None:
+        self.camera, self.steps, self.event, self.started = camera, 0, "none", False
+
+    def start_at(self, cam_from_world, sigma_rot_deg: float = 1.0, sigma_pos_m: float = 0.05) -> None:
+        self.started, self.event = True, "initialized"
+
+    def step(self, frame, relative_pose=None, timestamp=None) -> Registration:
+        """Returns a Registration encoding ``frame`` and the step count; ``event`` says how."""
+        if relative_pose is not None:
+            from linereg.graph import check_relative_pose  # GTSAM: loaded only by tests that need it
+
+            check_relative_pose(relative_pose, "relative_pose")
+        frame = np.asarray(frame)
+        code = frame[0, 0] if frame.ndim == 2 and frame.shape[1:] == (4,) and len(frame) else 0.0
+        if code == -4:
+            self.event = "predicted"
+            return Registration(success=False, reason="from neighbours: 1 frame(s) predicted")
+        if code in (-1, -2, -3):
+            fake_localize_segments(frame, None, self.camera)
+        self.steps += 1
+        self.event = "tracked" if self.steps > 1 or self.started else "initialized"
+        return replace(_registration(frame), cam_from_world=expected_track_pose(frame, self.steps))
+
+
 def load_fake_engine(
     map_path: str = "", map_name: str | None = None, config_path: str | None = None, startup_s: float = 0.0
 ) -> Engine:
@@ -80,4 +117,4 @@ def load_fake_engine(
     map_name = map_name or "fake"
     time.sleep(startup_s)
     info = {"name": map_name, "version": "fake-1", "bounds": [[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]}
-    return Engine(None, fake_localize, fake_localize_segments, map_name, "fake-1", info)
+    return Engine(None, fake_localize, fake_localize_segments, map_name, "fake-1", info, tracker=FakeTracker)

@@ -3,10 +3,12 @@
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 
 import numpy as np
 
 import protocols
+from linereg.camera import Camera
 from linereg.errors import InvalidInputError
 from protocols import Error, Limits, LocalizeReply, LocalizeRequest, ProtocolError
 
@@ -26,19 +28,33 @@ def handle_localize(payload: bytes, engine: Engine, limits: Limits) -> bytes:
         req = protocols.decode_request(payload, limits)
     except ProtocolError as e:
         return error_bytes(e.code, e.message, protocols.request_id(payload))
-    try:
+
+    def answer() -> bytes:
         reg = _localize(req, engine)
+        return protocols.encode_reply(reply_of(req.id, reg, engine, req.return_matches))
+
+    return guarded(req.id, answer)
+
+
+def guarded(request_id: str, compute: Callable[[], bytes]) -> bytes:
+    """Returns ``compute()``, or the Error bytes of what it raised: a ProtocolError's code, bad input
+    ``bad_request``, anything else ``internal`` (a bug or a library failure must not kill the worker)."""
+    try:
+        return compute()
     except ProtocolError as e:
-        return error_bytes(e.code, e.message, req.id)
+        return error_bytes(e.code, e.message, request_id)
     except InvalidInputError as e:
-        return error_bytes("bad_request", str(e), req.id)
-    except Exception as e:  # a bug or a library failure must not kill the worker
-        log.exception("localize failed for request %s", req.id)
-        return error_bytes("internal", f"{type(e).__name__}: {e}", req.id)
-    reply = LocalizeReply.from_registration(
-        req.id, reg, engine.map_name, engine.map_version, req.return_matches, engine.map_id
+        return error_bytes("bad_request", str(e), request_id)
+    except Exception as e:
+        log.exception("request %s failed", request_id)
+        return error_bytes("internal", f"{type(e).__name__}: {e}", request_id)
+
+
+def reply_of(request_id: str, reg, engine: Engine, return_matches: bool) -> LocalizeReply:
+    """Returns the LocalizeReply carrying Registration ``reg`` and the engine's map."""
+    return LocalizeReply.from_registration(
+        request_id, reg, engine.map_name, engine.map_version, return_matches, engine.map_id
     )
-    return protocols.encode_reply(reply)
 
 
 def _localize(req: LocalizeRequest, engine: Engine):
@@ -46,34 +62,34 @@ def _localize(req: LocalizeRequest, engine: Engine):
     prior = to_library_prior(req.prior)
     if req.segments is not None:
         return engine.localize_segments(req.segments, engine.line_map, req.camera, engine.config, prior)
-    image = decode_pixels(req)
+    image = decode_pixels(req.image, req.image_format, req.camera)
     return engine.localize(image, engine.line_map, req.camera, engine.config, prior)
 
 
-def decode_pixels(req: LocalizeRequest) -> np.ndarray:
-    """Returns the request's image as the library reads it: raw pixels as (H, W) uint8 grey, an encoded
-    image as decoded ((H, W[, C]) uint8 or uint16, BGR), for ``localize`` to make grey."""
+def decode_pixels(image: bytes | np.ndarray | None, image_format: str, camera: Camera) -> np.ndarray:
+    """Returns a decoded message's image as the library reads it: raw pixels as (H, W) uint8 grey, an
+    encoded image as decoded ((H, W[, C]) uint8 or uint16, BGR), for ``localize`` to make grey."""
     import cv2
 
-    if req.image_format == "raw":
-        pixels = np.asarray(req.image)
+    if image_format == "raw":
+        pixels = np.asarray(image)
         if pixels.dtype == np.uint16:
             pixels = (pixels // 257).astype(np.uint8)  # 16-bit full range onto 8-bit
         if pixels.ndim == 3:
             code = {1: None, 3: cv2.COLOR_BGR2GRAY, 4: cv2.COLOR_BGRA2GRAY}[pixels.shape[2]]
             pixels = pixels[:, :, 0] if code is None else cv2.cvtColor(pixels, code)
         return np.ascontiguousarray(pixels)
-    buffer = np.frombuffer(req.image, dtype=np.uint8)  # type: ignore[arg-type]
+    buffer = np.frombuffer(image, dtype=np.uint8)  # type: ignore[arg-type]
     # as stored, grey made by the library (``lines2d.to_gray8``): libpng's own grey conversion
     # (IMREAD_GRAYSCALE) differs by a grey level here and there, enough to move a borderline photo's pose
-    image = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if len(buffer) else None
-    if image is None:
-        raise ProtocolError("bad_request", f"image does not decode as {req.image_format}")
-    if image.shape[:2] != (req.camera.height, req.camera.width):
+    decoded = cv2.imdecode(buffer, cv2.IMREAD_UNCHANGED) if len(buffer) else None
+    if decoded is None:
+        raise ProtocolError("bad_request", f"image does not decode as {image_format}")
+    if decoded.shape[:2] != (camera.height, camera.width):
         raise ProtocolError(
-            "bad_request", f"decoded image is {image.shape[1]}x{image.shape[0]}, not the camera's size"
+            "bad_request", f"decoded image is {decoded.shape[1]}x{decoded.shape[0]}, not the camera's size"
         )
-    return image
+    return decoded
 
 
 def to_library_prior(prior: protocols.Prior | None):

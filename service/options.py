@@ -62,6 +62,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--config", help="JSON file of registration overrides, nested per section (default: none)"
     )
+    parser.add_argument(
+        "--session-idle-s",
+        type=float,
+        default=60.0,
+        help="a tracking session without a message for this long expires (default %(default)s)",
+    )
+    parser.add_argument(
+        "--max-sessions",
+        type=int,
+        default=64,
+        help="tracking sessions open at once on this instance (default %(default)s)",
+    )
+    parser.add_argument(
+        "--sessions-per-worker",
+        type=int,
+        default=32,
+        help="tracking sessions held by one worker process (default %(default)s)",
+    )
     parser.add_argument("--engine", default=DEFAULT_ENGINE, help=argparse.SUPPRESS)
     parser.add_argument(
         "--plain-logs", action="store_true", help="text logs instead of JSON lines (default: JSON lines)"
@@ -73,6 +91,7 @@ def config_from_args(args: argparse.Namespace):
     from protocols import Limits
 
     from .server import ServiceConfig
+    from .sessions import SessionLimits
     from .zconfig import DEFAULT_ENDPOINT
 
     limits = Limits(
@@ -86,4 +105,5 @@ def config_from_args(args: argparse.Namespace):
         instance=args.instance, tile=args.tile, workers=args.workers, queue_size=args.queue, mode=mode,
         threads_per_worker=args.threads_per_worker, listen=listen,
         connect=tuple(args.connect), zenoh_config=args.zenoh_config, limits=limits,
+        sessions=SessionLimits(args.session_idle_s, args.max_sessions, args.sessions_per_worker),
     )  # fmt: skip

@@ -3,10 +3,13 @@
 Each worker slot has one thread in this process that owns one child process and its pipe: it takes a
 job from the shared queue, sends it, waits for the reply, the child's death or the hard deadline, and
 replaces a dead or hung child. A watcher thread answers ``timeout`` when a job's deadline passes first.
+Tracking sessions live in one worker: their jobs go to that slot's own queue (``submit_to``), which the
+slot serves in turn with the shared one.
 """
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import heapq
 import itertools
@@ -19,6 +22,7 @@ import time
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from multiprocessing.connection import wait
+from typing import Literal
 
 import protocols
 from protocols import Limits
@@ -105,7 +109,10 @@ class WorkerPool:
         self._cv = threading.Condition()
         self._seq = itertools.count()
         self._closing = False
+        self._stopped = False  # the slot threads return
         self._count_lock = threading.Lock()
+        self._own: list[collections.deque] = [collections.deque() for _ in range(workers)]
+        self._work = threading.Condition()  # a job was queued (shared or a slot's own), or the pool stops
 
     def start(self, timeout_s: float = 300.0) -> dict:
         """Starts every worker, waits until each has loaded the map; returns the first one's ready doc."""
@@ -125,14 +132,36 @@ class WorkerPool:
         """Queues ``job``; returns False (the caller answers ``busy``) when the queue is full or closing."""
         if self._closing:
             return False
-        try:
-            self.jobs.put_nowait(job)
-        except queue.Full:
+        with self._work:
+            try:
+                self.jobs.put_nowait(job)
+            except queue.Full:
+                return False
+            self._work.notify_all()
+        self._watch(job)
+        return True
+
+    def submit_to(self, slot: int, job: Job, always: bool = False) -> bool:
+        """Queues ``job`` for worker slot ``slot`` only (a tracking session's); returns False (``busy``)
+        when that slot already has ``queue_size`` waiting or the pool is closing, unless ``always``."""
+        if self._closing and not always:
             return False
+        with self._work:
+            if len(self._own[slot]) >= self.jobs.maxsize and not always:
+                return False
+            self._own[slot].append(job)
+            self._work.notify_all()
+        self._watch(job)
+        return True
+
+    def queued_for_slots(self) -> int:
+        """Returns how many jobs wait in the slots' own queues."""
+        return sum(len(q) for q in self._own)
+
+    def _watch(self, job: Job) -> None:
         with self._cv:
             heapq.heappush(self._deadlines, (job.deadline, next(self._seq), job))
             self._cv.notify()
-        return True
 
     def alive(self) -> int:
         """Returns how many worker processes are alive."""
@@ -146,15 +175,16 @@ class WorkerPool:
         """Stops taking jobs, lets queued and in-flight ones finish (up to the timeout), stops the workers."""
         self._closing = True
         end = time.monotonic() + drain_timeout_s
-        while (self.jobs.qsize() or self.in_flight) and time.monotonic() < end:
+        while (self.jobs.qsize() or self.queued_for_slots() or self.in_flight) and time.monotonic() < end:
             time.sleep(0.01)
-        while True:  # whatever is left after the drain timeout is answered, never dropped
-            try:
-                self.jobs.get_nowait().fail("busy", "service shutting down")
-            except queue.Empty:
-                break
-        for _ in self._threads:
-            self.jobs.put(None)
+        with self._work:  # whatever is left after the drain timeout is answered, never dropped
+            left = [*self._drain_shared(), *(job for q in self._own for job in q)]
+            for q in self._own:
+                q.clear()
+            self._stopped = True
+            self._work.notify_all()
+        for job in left:
+            job.fail("busy", "service shutting down")
         for thread in self._threads:
             thread.join(timeout=max(0.1, end - time.monotonic()) + 5)
         for slot in self._procs:
@@ -164,6 +194,33 @@ class WorkerPool:
             self._cv.notify()
 
     # --- internals -------------------------------------------------------------------------------------
+
+    def _drain_shared(self) -> list[Job]:
+        jobs = []
+        while True:
+            try:
+                jobs.append(self.jobs.get_nowait())
+            except queue.Empty:
+                return jobs
+
+    def _next_job(self, index: int, own_first: bool) -> Job | Literal[False] | None:
+        """Returns the slot's next job (its own queue first when ``own_first``, else the shared one
+        first), False after a second without work, None when the pool stops."""
+        with self._work:
+            for attempt in range(2):
+                if self._stopped:
+                    return None
+                own = self._own[index]
+                if own and (own_first or self.jobs.empty()):
+                    return own.popleft()
+                try:
+                    return self.jobs.get_nowait()
+                except queue.Empty:
+                    if own:
+                        return own.popleft()
+                if attempt == 0:
+                    self._work.wait(timeout=1.0)
+            return False
 
     def _spawn(self, index: int):
         parent, child = _CTX.Pipe()
@@ -227,11 +284,10 @@ class WorkerPool:
         conn.close()
 
     def _slot_loop(self, index: int) -> None:
+        own_first = True
         while True:
-            try:
-                job = self.jobs.get(timeout=1.0)
-            except queue.Empty:
-                job = False
+            job = self._next_job(index, own_first)
+            own_first = not own_first  # sessions' frames and shared queries in turn: neither starves
             if job is None:
                 return
             if not self._procs[index][0].is_alive():  # died while idle: replace before it gets work

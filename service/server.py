@@ -15,11 +15,13 @@ from dataclasses import dataclass, field
 import zenoh
 
 import protocols
-from protocols import Limits, ProtocolError, keys
+from protocols import Limits, ProtocolError, keys, session
 
 from .handlers import error_bytes, handle_info, handle_stats
 from .pool import Job, WorkerPool
+from .sessions import Session, SessionLimits, SessionTable
 from .stats import Stats
+from .trackers import track_job
 from .zconfig import DEFAULT_ENDPOINT, session_config
 
 log = logging.getLogger(__name__)
@@ -45,6 +47,7 @@ class ServiceConfig:
     drain_timeout_s: float = 30.0
     threads_per_worker: int | None = None  # BLAS/OpenMP threads per worker; default cores // workers
     hard_grace_s: float = 30.0
+    sessions: SessionLimits = field(default_factory=SessionLimits)  # tracking sessions: idle expiry, caps
 
 
 class Service:
@@ -63,8 +66,10 @@ class Service:
             config.hard_grace_s,
             config.threads_per_worker,
         )
+        self.sessions = SessionTable(config.workers, config.sessions)
         self.map_name = ""
         self.info: dict = {}
+        self._stopping = threading.Event()
         self.session: zenoh.Session | None = None
         self._draining = False
         self._threads: list[threading.Thread] = []
@@ -88,6 +93,10 @@ class Service:
         self.info["name"] = self.map_name
         self.info["instance"] = self.instance
         cfg = self.config
+        if ready.get("tracking"):
+            limits = cfg.sessions
+            self.info["sessions"] = {"idle_timeout_s": limits.idle_timeout_s, "max_sessions": limits.max_sessions,
+                                     "per_worker": limits.per_worker}  # fmt: skip
         try:
             self.session = zenoh.open(
                 session_config(cfg.mode, cfg.listen, cfg.connect, cfg.zenoh_config, cfg.multicast)
@@ -106,6 +115,10 @@ class Service:
         ]
         if cfg.tile:
             routes.append((keys.tile_localize_key(self.map_name, cfg.tile), self._on_localize))
+        if ready.get("tracking"):
+            routes += [(keys.session_key(self.map_name), self._on_session),
+                       (keys.instance_session_key(self.map_name, self.instance), self._on_session)]  # fmt: skip
+            threading.Thread(target=self._expire_loop, name="linereg-sessions", daemon=True).start()
         for key, handler in routes:
             queryable = self.session.declare_queryable(key, zenoh.handlers.FifoChannel(256))
             thread = threading.Thread(
@@ -124,7 +137,8 @@ class Service:
         return self.stats.snapshot(
             instance=self.instance, queue_depth=pool.jobs.qsize(), queue_size=self.config.queue_size,
             in_flight=pool.in_flight, workers=self.config.workers, workers_alive=pool.alive(),
-            worker_restarts=pool.restarts, draining=self._draining,
+            worker_restarts=pool.restarts, draining=self._draining, sessions=self.sessions.snapshot(),
+            session_queue_depth=pool.queued_for_slots(),
         )  # fmt: skip
 
     def stop(self) -> None:
@@ -132,6 +146,7 @@ class Service:
         if self.session is None:
             return
         self._draining = True
+        self._stopping.set()
         if self._token is not None:  # clients choosing an instance by liveliness stop picking this one
             self._token.undeclare()
             self._token = None
@@ -179,11 +194,84 @@ class Service:
         elif not self.pool.submit(job):
             job.fail("busy", f"queue full ({self.config.queue_size} waiting)")
 
+    def _on_session(self, query, key: str) -> None:
+        """Opens or closes a tracking session here, or queues a frame for the worker holding it."""
+        start = time.monotonic()
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        request_id = protocols.request_id(payload)
+        self._expire()
+        try:
+            kind, session_id = session.session_of(payload, self.config.limits)
+            if kind == "track_request":
+                self._track(query, key, start, payload, self.sessions.begin(session_id))
+                return
+            reply = self._open(payload) if kind == "session_open" else self._close(payload)
+        except ProtocolError as e:
+            self._answer(
+                query, key, start, request_id, False, error_bytes(e.code, e.message, request_id), e.code
+            )
+            return
+        self._answer(query, key, start, request_id, True, reply, "")
+
+    def _open(self, payload: bytes) -> bytes:
+        if self._draining:
+            raise ProtocolError("busy", "service shutting down")
+        req = session.decode_session_open(payload, self.config.limits)
+        found = self.sessions.open(req.camera, payload)
+        log.info("session opened", extra={"fields": {"session": found.id, "worker": found.slot}})
+        return session.encode_session_opened(protocols.SessionOpened(
+            req.id, found.id, self.instance, self.config.sessions.idle_timeout_s, self.map_name,
+            str(self.info.get("version", "")), str(self.info.get("map_id", "")),
+        ))  # fmt: skip
+
+    def _close(self, payload: bytes) -> bytes:
+        req = session.decode_session_close(payload, self.config.limits)
+        found = self.sessions.close(req.session)
+        self._drop(found, "closed")
+        return session.encode_session_closed(protocols.SessionClosed(req.id, found.id, found.frames))
+
+    def _track(self, query, key: str, start: float, payload: bytes, found: Session) -> None:
+        """Queues one frame of ``found`` on its worker slot (``found`` has it counted in flight)."""
+        limits = self.config.limits
+        try:
+            req = session.decode_track_request(payload, found.camera, limits)
+        except ProtocolError:
+            self.sessions.end(found, answered=False)
+            raise
+
+        def done(ok: bool, reply: bytes, code: str) -> None:
+            self.sessions.end(found, answered=ok)
+            self._answer(query, key, start, req.id, ok, reply, code)
+
+        deadline = start + (req.deadline_ms or limits.default_deadline_ms) / 1000.0
+        job = Job(
+            track_job("step", found.id, found.open_payload, found.frames, payload), deadline, done, req.id
+        )
+        if self._draining:
+            job.fail("busy", "service shutting down")
+        elif not self.pool.submit_to(found.slot, job):
+            job.fail("busy", f"the session's worker has {self.config.queue_size} frames waiting")
+
+    def _drop(self, found: Session, why: str) -> None:
+        """Frees the session's tracker in its worker (after any frame of it still queued there)."""
+        job = Job(track_job("drop", found.id), time.monotonic() + 1e6, lambda ok, b, c: None, found.id)
+        self.pool.submit_to(found.slot, job, always=True)
+        log.info(f"session {why}", extra={"fields": {"session": found.id, "frames": found.frames}})
+
+    def _expire(self) -> None:
+        for found in self.sessions.expire():
+            self._drop(found, "expired")
+
+    def _expire_loop(self) -> None:
+        period = min(1.0, self.config.sessions.idle_timeout_s / 4)
+        while not self._stopping.wait(period):
+            self._expire()
+
     def _answer(
         self, query, key: str, start: float, request_id: str, ok: bool, payload: bytes, code: str
     ) -> None:
-        """Sends the one reply of a localize query, counts it and logs it (one JSON line per request)."""
-        outcome = ("ok" if protocols.decode_reply(payload).success else "not_localized") if ok else code
+        """Sends the one reply of a query, counts it and logs it (one JSON line per request)."""
+        outcome = _outcome(payload) if ok else code
         latency_ms = (time.monotonic() - start) * 1000.0
         self.stats.record(outcome, latency_ms)
         self._reply(query, key, payload, ok)
@@ -200,6 +288,11 @@ class Service:
             query.drop()  # the final reply: the client stops waiting now
         except Exception as e:  # the client is gone; nothing to answer
             log.info("reply not delivered", extra={"fields": {"error": str(e)}})
+
+
+def _outcome(reply: bytes) -> str:
+    """Returns the stats outcome of a normal reply: ``not_localized`` for a frame without a pose, else ok."""
+    return "not_localized" if protocols.unpack(reply).get("status") == "not_localized" else "ok"
 
 
 def default_instance() -> str:

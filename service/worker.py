@@ -2,7 +2,8 @@
 
 Pipe protocol (parent <-> worker, both bytes): the worker first sends a ``ready`` document (map name,
 version, info) or a ``failed`` one; then for each request payload it sends ``b"R" + reply`` or
-``b"E" + error``; an empty message from the parent means stop.
+``b"E" + error``; an empty message from the parent means stop. A payload starting with ``b"S"`` is a
+track job of a tracking session (``trackers.py``), any other a localize request.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from protocols import Limits
 
 from .engine import load_engine
 from .handlers import handle_localize
+from .trackers import TRACK_JOB, Trackers
 
 log = logging.getLogger(__name__)
 
@@ -42,8 +44,10 @@ def worker_main(conn, loader: str, loader_args: tuple, limits: Limits) -> None:
             protocols.pack("failed", {"error": f"{type(e).__name__}: {e}", "trace": traceback.format_exc()})
         )
         return
-    info = {"map_name": engine.map_name, "map_version": engine.map_version, "info": engine.info}
+    info = {"map_name": engine.map_name, "map_version": engine.map_version, "info": engine.info,
+            "tracking": engine.tracker is not None}  # fmt: skip
     conn.send_bytes(protocols.pack("ready", info))
+    trackers = Trackers(engine, limits)
     while True:
         try:
             payload = conn.recv_bytes()
@@ -51,6 +55,9 @@ def worker_main(conn, loader: str, loader_args: tuple, limits: Limits) -> None:
             return
         if not payload:
             return
-        reply = handle_localize(payload, engine, limits)
+        if payload[:1] == TRACK_JOB:
+            reply = trackers.handle(payload)
+        else:
+            reply = handle_localize(payload, engine, limits)
         kind = b"E" if protocols.message_type(reply) == "error" else b"R"
         conn.send_bytes(kind + reply)

@@ -37,14 +37,19 @@ def fake_config(endpoint: str, **kw) -> ServiceConfig:
     )
 
 
+@contextlib.contextmanager
+def fake_service(**kw):
+    """Yields a running Service of the fake engine on a free port (its ``endpoint`` set)."""
+    endpoint = free_endpoint()
+    with Service(fake_config(endpoint, **kw)) as svc:
+        svc.endpoint = endpoint
+        yield svc
+
+
 @pytest.fixture(scope="module")
 def service():
-    endpoint = free_endpoint()
-    config = fake_config(
-        endpoint, workers=2, queue_size=4, limits=Limits(max_payload_bytes=1_000_000), hard_grace_s=2.0
-    )
-    with Service(config) as svc:
-        svc.endpoint = endpoint
+    limits = Limits(max_payload_bytes=1_000_000)
+    with fake_service(workers=2, queue_size=4, limits=limits, hard_grace_s=2.0) as svc:
         yield svc
 
 
