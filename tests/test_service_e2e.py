@@ -87,3 +87,41 @@ def test_linereg_serve_cli_serves_a_saved_map(served, tmp_path):
         assert proc.wait(timeout=30) == 0
     finally:
         proc.kill()
+
+
+def test_tracking_session_over_zenoh_survives_its_worker(tmp_path):
+    """The real Tracker in a worker: a global start, tracked frames, bad frames refused, a killed worker."""
+    import os
+    import signal
+
+    from linereg.bench.sessions import CAMERA, orbit_scene
+    from linereg.graph import relative_pose
+    from service import ServiceError
+
+    lines3d, truth, frames = orbit_scene(n_frames=8)
+    np.save(tmp_path / "orbit.npy", lines3d)
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    config = ServiceConfig(loader="service.engine:load_segments_engine",
+                           loader_args=(str(tmp_path / "orbit.npy"), "orbit"), workers=1, listen=(endpoint,))  # fmt: skip
+    with Service(config) as svc, Client(endpoint, map_name="orbit", retries=1) as client:
+        with client.open_session(CAMERA) as session:
+
+            def step(k: int, **kw):
+                odometry = relative_pose(truth[k - 1], truth[k]) if k else None
+                reg = session.step(frames[k], kw.pop("relative_pose", odometry), timeout=60.0, **kw)
+                rot_deg, pos_m, _ = pose_errors(reg.cam_from_world, truth[k])
+                assert reg.success and rot_deg < 0.1 and pos_m < 0.01, (k, reg.reason, rot_deg, pos_m)
+                return session.event
+
+            assert [step(k, timestamp=0.1 * k) for k in range(4)] == ["initialized"] + ["tracked"] * 3
+            not_rigid = np.diag([1.0, 1.0, 2.0, 1.0])
+            for bad in ({"relative_pose": not_rigid}, {"timestamp": 0.0}):  # the timestamp goes back
+                with pytest.raises(ServiceError) as e:
+                    step(4, **bad)
+                assert e.value.code == "bad_request"
+            assert step(4, timestamp=0.4) == "tracked" and session.frames == 5
+            os.kill(svc.pool.pids()[0], signal.SIGKILL)
+            assert step(5) == "initialized" and session.restarted  # registered globally by a new tracker
+            assert step(6) == "tracked" and not session.restarted

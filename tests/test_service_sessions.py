@@ -199,3 +199,10 @@ def test_worker_trackers_make_one_per_session_and_say_when_one_was_made_again():
     assert _step(trackers, "s2", frame(1), frames=8).restarted is False
     trackers.handle(track_job("drop", "s1"))
     assert len(trackers) == 1
+
+
+def test_the_sessions_benchmark_walks_its_orbit_back_and_forth_without_a_jump():
+    from linereg.bench.sessions import back_and_forth
+
+    order = back_and_forth(4, 2, 9)
+    assert order == [2, 3, 2, 1, 0, 1, 2, 3, 2]

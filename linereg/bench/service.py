@@ -36,6 +36,16 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--garbage", type=float, default=0.1, help="fraction of bad soak queries (default 0.1)"
     )
+    parser.add_argument(
+        "--sessions",
+        type=int,
+        default=0,
+        help="run only the tracking-sessions soak with this many (default 0: off)",
+    )
+    parser.add_argument("--duration", type=float, default=600.0, help="sessions soak seconds (default 600)")
+    parser.add_argument(
+        "--session-hz", type=float, default=10.0, help="frames per second per session (default 10)"
+    )
     parser.add_argument("--out", type=Path, default=Path("bench-results/service"), help="output directory")
     parser.set_defaults(func=run)
 
@@ -44,6 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from service import logs
 
     logs.configure(level=30, json_lines=False)  # warnings only: the service logs every reply at INFO
+    if args.sessions:
+        return run_sessions(args)
     soak = min(args.soak, 1000) if args.quick else args.soak
     load_before = os.getloadavg()[0]
     results: dict[str, object] = {
@@ -59,6 +71,24 @@ def run(args: argparse.Namespace) -> int:
     report.write_json_atomic(args.out / "results.json", results)
     print(summary(results))
     print(f"-> {args.out / 'results.json'}", file=sys.stderr)
+    return 0
+
+
+def run_sessions(args: argparse.Namespace) -> int:
+    """Runs the tracking-sessions soak (``bench.sessions``), writes ``sessions.json``, prints the table."""
+    from .sessions import bench_sessions, summary_rows
+
+    load_before = os.getloadavg()[0]
+    result = bench_sessions(args.sessions, args.duration, args.session_hz, args.clients)
+    result["loadavg_before_after"] = [load_before, os.getloadavg()[0]]
+    report.write_json_atomic(args.out / "sessions.json", result)
+    rows = summary_rows(result)
+    for row in rows:
+        row["value"] = str(row["value"])
+    print(
+        report.format_table(rows, [("what", "measure", ""), ("value", "value", ""), ("target", "target", "")])
+    )
+    print(f"-> {args.out / 'sessions.json'}", file=sys.stderr)
     return 0
 
 
