@@ -163,10 +163,11 @@ class Client:
     def track(self, frames, camera: Camera, relative_poses=None, timestamps=None, start=None,
               timeout: float = 10.0) -> Iterator[Registration]:  # fmt: skip
         """Yields the Registration of each frame through one tracking session (opened and closed here);
-        ``relative_poses[k]``: (4, 4) ``cam_k-1_from_cam_k`` of frame k (ignored for the first frame)."""
+        ``relative_poses[k]``: the measured (4, 4) ``cam_k_from_cam_k+1``, K - 1 of them (as in
+        ``linereg.localize_sequence``); ``timestamps[k]``: seconds."""
         with self.open_session(camera, start, timeout) as tracking:
             for k, frame in enumerate(frames):
-                relative = None if relative_poses is None or k == 0 else relative_poses[k]
+                relative = None if relative_poses is None or k == 0 else relative_poses[k - 1]
                 stamp = None if timestamps is None else float(timestamps[k])
                 yield tracking.step(frame, relative, stamp, timeout)
 
