@@ -270,7 +270,7 @@ def test_fill_gaps_closes_holes_in_an_occluder_but_keeps_its_edge():
 
 def test_square_splats_lie_in_the_tangent_plane():
     from linereg.color.config import VisibilityConfig
-    from linereg.color.depth import SplatLayout, depth_slope, finish, splat
+    from linereg.color.depth import SplatLayout, crop, depth_slope, finish, splat
 
     layout = SplatLayout.for_camera(CAMERA, VisibilityConfig())
     normal = np.array([[np.sin(0.6), 0.0, -np.cos(0.6)]], np.float32)  # a plane turned 0.6 rad about y
@@ -278,9 +278,50 @@ def test_square_splats_lie_in_the_tangent_plane():
     slope = depth_slope(normal, u, v, z, CAMERA, max_slope=1.5)
     buffer = layout.empty()
     splat(buffer, layout, u, v, z, np.array([3.0], np.float32), slope)
-    row = finish(buffer, layout)[60, 79:82]
+    row = crop(finish(buffer, layout))[60, 79:82]
     # the plane n . X = n . P met by the rays of pixels 79..81
     x = (np.arange(79, 82) - CAMERA.cx) / CAMERA.fx
     p = z[0] * np.array([(80.0 - CAMERA.cx) / CAMERA.fx, (60.0 - CAMERA.cy) / CAMERA.fy, 1.0])
     truth = normal[0] @ p / (normal[0, 0] * x + normal[0, 1] * (60.0 - CAMERA.cy) / CAMERA.fy + normal[0, 2])
     np.testing.assert_allclose(row, truth, atol=2e-3)
+
+
+def sampled(x0, x1, y0, y1, z, spacing, rng) -> np.ndarray:
+    """Returns (P, 3) points scattered at random over [x0, x1] x [y0, y1] at depth z (~1 per spacing^2),
+    with 5 mm of range noise: the irregular sampling of a scan."""
+    n = int((x1 - x0) * (y1 - y0) / spacing**2)
+    return np.c_[rng.uniform(x0, x1, n), rng.uniform(y0, y1, n), z + rng.normal(0.0, 0.005, n)]
+
+
+def test_no_point_behind_an_occluder_is_coloured_at_range():
+    # a far wall at 60 m seen head-on; before it a wall at 30 m crossing the image's left border and a
+    # panel 0.15 m in front of the far wall; every surface sparse (splats ~1.5 px) and irregular
+    rng = np.random.default_rng(3)
+    far = sampled(-20, 20, -15, 15, 60.0, 0.3, rng)
+    occluder = sampled(-10, -2, -3, 3, 30.0, 0.15, rng)
+    panel = sampled(4, 8, -3, 3, 59.85, 0.3, rng)
+    points = np.r_[far, occluder, panel]
+    photo = np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8)
+    _, seen = linereg.colorize(points, [photo], CAMERA, look_from([0, 0, 0])[None])
+    seen_far = seen[: len(far)]
+    u = CAMERA.fx * far[:, 0] / far[:, 2] + CAMERA.cx
+    v = CAMERA.fy * far[:, 1] / far[:, 2] + CAMERA.cy
+
+    def behind(x0, x1, y0, y1, z, inset_px):  # the far points inside a rectangle's silhouette, inset
+        px = CAMERA.fx / z
+        return (
+            (u > x0 * px + CAMERA.cx + inset_px) & (u < x1 * px + CAMERA.cx - inset_px)
+            & (v > y0 * px + CAMERA.cy + inset_px) & (v < y1 * px + CAMERA.cy - inset_px)
+        )  # fmt: skip
+
+    # a surface sampled every 1.5 px has its outline known to ~1.5 px: the hidden points are those 2 px
+    # inside the silhouettes
+    hidden = behind(-10, -2, -3, 3, 30.0, 2.0) | behind(4, 8, -3, 3, 59.85, 2.0)
+    clear = ~behind(-10, -2, -3, 3, 30.0, -2.0) & ~behind(4, 8, -3, 3, 59.85, -2.0)
+    inside = (u > 0) & (u < CAMERA.width - 1) & (v > 0) & (v < CAMERA.height - 1)
+    assert hidden.sum() > 1000 and (hidden & (u < 1.5)).sum() > 20  # the occluder reaches the border
+    assert (seen_far[hidden] == 0).all(), f"{(seen_far[hidden] > 0).sum()} points coloured through"
+    assert (seen_far[clear & inside] > 0).mean() > 0.9
+    front = points[len(far) :]
+    in_image = np.abs(CAMERA.fx * front[:, 0] / front[:, 2]) < CAMERA.cx - 1.0
+    assert (seen[len(far) :][in_image] > 0).mean() > 0.9  # the occluders themselves are seen

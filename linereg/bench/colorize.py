@@ -82,7 +82,8 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"coloured through an occluder: ours {occlusion['ours']} ({occlusion['ours_over_1m']} with it > 1 m in "
         f"front), naive {occlusion['naive']} (target 0); ours coloured {occlusion['pairs']:,} (point, photo) "
-        f"pairs, {occlusion['points_coloured']:,} points"
+        f"pairs, {occlusion['points_coloured']:,} points; truly visible pairs coloured "
+        f"{occlusion['visible_coloured']:,} of {occlusion['visible']:,}"
     )
     if throughput:
         print(
@@ -226,7 +227,8 @@ def write_strip(path: Path, photo, ours, mask_a, naive, mask_b, scene, rows, pix
 
 def occlusion_check(scene: Any, num_images: int) -> dict[str, int]:
     """Returns how many (point, photo) pairs coloured a point the photo cannot see (ours, naive; ours
-    split by how far in front the occluder is) and our coverage: (point, photo) pairs, points coloured."""
+    split by how far in front the occluder is) and our coverage: (point, photo) pairs, points coloured,
+    and of the pairs the renderer says are visible how many there are and how many we coloured."""
     from ..color.blend import observe
     from ..color.config import ColorizeConfig
     from ..color.engine import ArraySource, View, chunk_geometry, depth_pass, make_plan, prepare_photos
@@ -246,7 +248,7 @@ def occlusion_check(scene: Any, num_images: int) -> dict[str, int]:
     for k, (rows, _, _) in enumerate(truth):  # naive: the nearest photo a point projects into colours it
         distance[k, rows] = np.linalg.norm(scene.cloud[rows] - camera_center(scene.cam_from_world[k]), axis=1)
     nearest = np.argmin(distance, axis=0)
-    counts = dict.fromkeys(("ours", "ours_over_1m", "naive", "pairs"), 0)
+    counts = dict.fromkeys(("ours", "ours_over_1m", "naive", "pairs", "visible", "visible_coloured"), 0)
     coloured = np.zeros(len(scene.cloud), bool)
     for k, (photo, depth) in enumerate(zip(photos, maps, strict=True)):
         used = observe(photo, depth, scene.cloud, spacing, normals, config).index
@@ -257,6 +259,8 @@ def occlusion_check(scene: Any, num_images: int) -> dict[str, int]:
         counts["ours_over_1m"] += int(occluded[used].sum() - _within_m(scene, k, used[occluded[used]], 1.0))
         counts["naive"] += int((occluded & (nearest == k)).sum())
         counts["pairs"] += len(used)
+        counts["visible"] += int((state == 1).sum())  # what the photo shows of the scan, for scale
+        counts["visible_coloured"] += int(np.isin(used, rows[state == 1]).sum())
         coloured[used] = True
     return {**counts, "points_coloured": int(coloured.sum())}
 

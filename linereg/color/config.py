@@ -28,10 +28,13 @@ class VisibilityConfig:
     max_splat_px: int = 16
     near_m: float = 0.1  # points nearer to a camera are not seen by it
     # a point is visible when it lies at most this far behind the buffer's depth: a floor (scan noise,
-    # ~3 sigma of 1 cm), a share of the range (calibration and pose error grow with it) and the depth change
-    # across its own splat on a slanted surface (from the normal)
+    # ~3 sigma of 1 cm) and the depth change across what the buffer cannot resolve on a slanted surface
+    # (from the normal; it grows with range as the pixel's footprint does). No share of the range by
+    # default: the buffer is made of the same points seen from the same pose, so a pose or calibration
+    # error moves a point and its own splat together; 0.004 of the range let points 0.1-0.3 m behind a
+    # window reveal through at 20-50 m. Raise it for clouds whose scans disagree (misregistration).
     depth_tol_m: float = 0.04
-    depth_tol_rel: float = 0.004
+    depth_tol_rel: float = 0.0
     # the slope term of the tolerance stops at this tan(incidence): a surface seen more grazing than
     # atan(max_slope) hides parts of itself rather than let what lies behind an occluder through
     max_slope: float = 1.5

@@ -53,14 +53,17 @@ def make_cells(points: np.ndarray, cell_m: float) -> Cells:
     return Cells(rows, starts, 0.5 * (lo + hi), 0.5 * np.linalg.norm(hi - lo, axis=1))
 
 
-def rows_in_view(cells: Cells, camera: Camera, cam_from_world: np.ndarray, near_m: float) -> np.ndarray:
-    """Returns (n,) int64 the chunk rows of the cells whose bounding sphere meets the photo's frustum."""
+def rows_in_view(
+    cells: Cells, camera: Camera, cam_from_world: np.ndarray, near_m: float, margin_px: float = 0.0
+) -> np.ndarray:
+    """Returns (n,) int64 the chunk rows of the cells whose bounding sphere meets the photo's frustum
+    (widened by ``margin_px`` round the image)."""
     if len(cells.radius) == 0:
         return cells.rows
     R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
     c = cells.centre @ R.T + t  # (C, 3) camera frame; cells are few
     r = cells.radius
-    lo, hi = field_of_view(camera)
+    lo, hi = field_of_view(camera, margin_px)
     # the four side planes through the centre of projection: x = lo_x z, x = hi_x z, same for y; a sphere
     # meets the half-space inside when its centre lies less than r outside (distances along unit normals)
     keep = c[:, 2] + r > near_m

@@ -5,7 +5,9 @@ spacing and range), so a sparse occluder still hides what lies behind it. Splats
 ``np.minimum.at`` per chunk: up to ``EXACT_MAX_PX`` wide as squares of ``ceil(d)`` pixels; wider ones (near
 points, few) into a pyramid, at level ``L = ceil(log2 d)`` (cells of ``c = 2^L`` px) in the cell whose 2 x 2
 block covers ``[u - c/2, u + c/2]``. ``finish`` spreads every cell over its 2 x 2 block and takes the minimum
-over levels; ``fill_gaps`` then closes the holes irregular sampling leaves. Square splats lie in their
+over levels; ``fill_gaps`` then closes the holes irregular sampling leaves. The pixel image has a margin
+round the photo where points just outside it splat too, so an occluder crossing the image border hides
+what lies behind it up to the border. Square splats lie in their
 point's tangent plane (``depth_slope``), so a slanted surface does not hide itself and the depth test's
 tolerance stays small. Every step is a minimum, so buffers of different chunks combine by ``np.minimum``
 before or after ``finish`` alike (chunks may be splatted on different machines).
@@ -22,6 +24,9 @@ from ..camera import Camera
 from .config import VisibilityConfig
 
 EXACT_MAX_PX = 5  # splats up to this wide are exact squares of pixels; wider ones go to the pyramid
+# the pixel image has this many pixels of margin round the photo: a square splat of a point just outside
+# the photo lands there partly, and whatever is clipped to its outer edge is cropped by ``finish``
+PAD_PX = EXACT_MAX_PX // 2 + 1
 GAP_DIRECTIONS = ((0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (-1, 1))  # (dy, dx)
 
 
@@ -29,8 +34,9 @@ GAP_DIRECTIONS = ((0, 1), (1, 1), (1, 0), (1, -1), (0, -1), (-1, -1), (-1, 0), (
 class SplatLayout:
     """Where the levels of one photo's splat pyramid lie in a flat float32 buffer.
 
-    Level -1 (single pixels) is the (H, W) image at offset 0; level L >= 0 is a (ceil(H/c) + 1,
-    ceil(W/c) + 1) grid of cells of ``c = 2^L`` px (one more row and column: blocks starting at -1).
+    Level -1 (single pixels) is the (H + 2 PAD_PX, W + 2 PAD_PX) image with its margin at offset 0;
+    level L >= 0 is a (ceil(H/c) + 1, ceil(W/c) + 1) grid of cells of ``c = 2^L`` px (one more row and
+    column: blocks starting at -1).
     """
 
     width: int
@@ -42,9 +48,18 @@ class SplatLayout:
         max_level = max(math.ceil(math.log2(max(config.max_splat_px, 1))), 0)
         return cls(camera.width, camera.height, max_level)
 
+    @property
+    def margin_px(self) -> float:
+        """How far (px) outside the photo a point may lie and still splat into it: half the widest splat.
+
+        Points of an occluder just beyond the image border cover its first pixels; without them a farther
+        surface would show through there.
+        """
+        return 0.5 * max(float(1 << self.max_level), EXACT_MAX_PX) + 0.5
+
     def shape(self, level: int) -> tuple[int, int]:
         if level < 0:
-            return self.height, self.width
+            return self.height + 2 * PAD_PX, self.width + 2 * PAD_PX
         c = 1 << level
         return -(-self.height // c) + 1, -(-self.width // c) + 1
 
@@ -70,7 +85,8 @@ def splat(
 ) -> None:
     """Writes the minimum depth of every splat into ``buffer`` (from ``layout.empty()``), in place.
 
-    u, v: (n,) float32 pixels inside the image; z: (n,) float32 depth m; diameter_px: (n,) float32;
+    u, v: (n,) float32 pixels, inside the image or up to ``layout.margin_px`` outside it; z: (n,) float32
+    depth m; diameter_px: (n,) float32;
     slope: (n, 2) float32 dz/du, dz/dv (m per pixel, ``depth_slope``): square splats then write the depth
     of the point's tangent plane at each pixel rather than its own, pyramid splats stay flat.
     """
@@ -80,7 +96,7 @@ def splat(
         sel = np.flatnonzero(side == s) if s <= EXACT_MAX_PX else np.flatnonzero(side > EXACT_MAX_PX)
         if s <= EXACT_MAX_PX:
             rows, cols = _square_pixels(layout, u[sel], v[sel], int(s))
-            index.append((rows * layout.width + cols).ravel())
+            index.append(((rows + PAD_PX) * (layout.width + 2 * PAD_PX) + cols + PAD_PX).ravel())
             d = np.broadcast_to(z[sel, None, None], rows.shape)
             if slope is not None:
                 du, dv = cols - u[sel, None, None], rows - v[sel, None, None]
@@ -88,8 +104,10 @@ def splat(
             depth.append(d.ravel())
         else:
             level = np.minimum(np.ceil(np.log2(diameter_px[sel])), layout.max_level).astype(np.int64)
-            index.append(_block_indices(layout, u[sel], v[sel], level))
-            depth.append(z[sel])
+            block = _block_indices(layout, u[sel], v[sel], level)
+            reaches = block >= 0  # a point outside the image whose block does not reach it: none
+            index.append(block[reaches])
+            depth.append(z[sel][reaches])
     if index:
         np.minimum.at(buffer, np.concatenate(index), np.concatenate(depth).astype(np.float32))
 
@@ -98,12 +116,13 @@ def _square_pixels(
     layout: SplatLayout, u: np.ndarray, v: np.ndarray, side: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns (n, side, side) int64 rows and columns of the ``side`` x ``side`` pixels centred on each
-    point (clipped to the image)."""
+    point (image pixels; clipped to the image and its margin of ``PAD_PX``: a pixel clipped to the
+    margin's outer edge lies outside the image, as did the pixel it stands for)."""
     first_col = np.floor(u - 0.5 * side + 1.0).astype(np.int64)  # side 1: the pixel holding the point
     first_row = np.floor(v - 0.5 * side + 1.0).astype(np.int64)
     steps = np.arange(side)
-    cols = np.clip(first_col[:, None] + steps, 0, layout.width - 1)  # (n, side)
-    rows = np.clip(first_row[:, None] + steps, 0, layout.height - 1)
+    cols = np.clip(first_col[:, None] + steps, -PAD_PX, layout.width - 1 + PAD_PX)  # (n, side)
+    rows = np.clip(first_row[:, None] + steps, -PAD_PX, layout.height - 1 + PAD_PX)
     shape = (len(u), side, side)
     return np.broadcast_to(rows[:, :, None], shape), np.broadcast_to(cols[:, None, :], shape)
 
@@ -129,7 +148,8 @@ def depth_slope(
 
 
 def _block_indices(layout: SplatLayout, u: np.ndarray, v: np.ndarray, level: np.ndarray) -> np.ndarray:
-    """Returns (n,) flat indices of the cells (c = 2^level px) whose 2 x 2 block covers [u - c/2, u + c/2]."""
+    """Returns (n,) flat indices of the cells (c = 2^level px) whose 2 x 2 block covers [u - c/2, u + c/2];
+    -1 for a point so far outside the image that its block would lie wholly beyond the grid."""
     index = np.empty(len(u), dtype=np.int64)
     offsets = layout.offsets
     for lev in np.unique(level):
@@ -137,28 +157,41 @@ def _block_indices(layout: SplatLayout, u: np.ndarray, v: np.ndarray, level: np.
         c = float(1 << lev)
         col = np.floor((u[sel] + 0.5) / c - 0.5).astype(np.int64) + 1  # +1: blocks start at cell -1
         row = np.floor((v[sel] + 0.5) / c - 0.5).astype(np.int64) + 1
-        index[sel] = offsets[lev + 1] + row * layout.shape(lev)[1] + col
+        rows, cols = layout.shape(lev)
+        inside = (row >= 0) & (row < rows) & (col >= 0) & (col < cols)
+        index[sel] = np.where(inside, offsets[lev + 1] + row * cols + col, -1)
     return index
 
 
 def finish(buffer: np.ndarray, layout: SplatLayout) -> np.ndarray:
-    """Returns the (H, W) float32 depth map (m, +inf where no point): the minimum over all levels."""
+    """Returns the (H + 2 PAD_PX, W + 2 PAD_PX) float32 depth map (m, +inf where no point) of the photo
+    and its margin: the minimum over all levels (``crop`` cuts the photo out of it).
+
+    The margin holds the square splats of points just outside the photo, so ``fill_gaps`` sees an
+    occluder that crosses the image border on both sides of it.
+    """
     h, w = layout.height, layout.width
     offsets = layout.offsets
-    depth = buffer[: h * w].reshape(h, w).copy()
+    depth = buffer[: offsets[1]].reshape(layout.shape(-1)).copy()
+    inner = depth[PAD_PX : PAD_PX + h, PAD_PX : PAD_PX + w]  # a view: the photo's pixels
     for lev in range(layout.max_level + 1):
         grid = buffer[offsets[lev + 1] : offsets[lev + 2]].reshape(layout.shape(lev))
         # cell i is covered by the blocks stored at i (starting at cell i - 1) and at i + 1
         cells = np.minimum(np.minimum(grid[:-1, :-1], grid[1:, :-1]), np.minimum(grid[:-1, 1:], grid[1:, 1:]))
         c = 1 << lev
-        np.minimum(depth, np.repeat(np.repeat(cells, c, axis=0), c, axis=1)[:h, :w], out=depth)
+        np.minimum(inner, np.repeat(np.repeat(cells, c, axis=0), c, axis=1)[:h, :w], out=inner)
     return depth
 
 
+def crop(depth: np.ndarray) -> np.ndarray:
+    """Returns the (H, W) photo part of a depth map with its margin (``finish``)."""
+    return depth[PAD_PX:-PAD_PX, PAD_PX:-PAD_PX]
+
+
 def fill_gaps(depth: np.ndarray, config: VisibilityConfig) -> np.ndarray:
-    """Returns the (H, W) float32 depth map with its gaps closed: a pixel that meets a surface nearer by
-    more than ``depth_tol`` in at least ``gap_directions`` of 8 directions (within ``gap_radius_px``)
-    takes the farthest of those nearer depths; ``gap_passes`` times.
+    """Returns the float32 depth map (any shape: ``finish``'s, with its margin) with its gaps closed: a
+    pixel that meets a surface nearer by more than ``depth_tol`` in at least ``gap_directions`` of 8
+    directions (within ``gap_radius_px``) takes the farthest of those nearer depths; ``gap_passes`` times.
 
     Splats cover the mean spacing, but irregular and striped sampling (scan lines) leaves holes through
     which farther points show. A hole is enclosed by its occluder on (nearly) every side; a pixel beside
@@ -176,7 +209,8 @@ def fill_gaps(depth: np.ndarray, config: VisibilityConfig) -> np.ndarray:
                 y, x = r + dy * step, r + dx * step
                 np.minimum(nearest[i], padded[y : y + h, x : x + w], out=nearest[i])
         enclosing = np.partition(nearest, config.gap_directions - 1, axis=0)[config.gap_directions - 1]
-        gap = depth > enclosing + config.depth_tol_m + config.depth_tol_rel * enclosing
+        with np.errstate(invalid="ignore"):  # inf * 0 where nothing encloses: no gap either way
+            gap = depth > enclosing + config.depth_tol_m + config.depth_tol_rel * enclosing
         depth = np.where(gap, enclosing, depth)
     return depth
 
@@ -192,7 +226,7 @@ def tolerance_m(
 ) -> np.ndarray:
     """Returns (n,) float32 how far (m) a point may lie behind the depth map and still be visible.
 
-    The floor and the share of range, plus the depth change on a surface at ``tan_incidence`` to the
+    The floor (and the share of range, 0 by default), plus the depth change on a surface at ``tan_incidence`` to the
     viewing ray across what the depth map cannot follow: a pixel of rounding for square splats (they are
     tilted along their tangent plane, ``depth_slope``), 1.5 cells of a flat pyramid block (the nearest
     splat of the same surface at the point's pixel may come from a neighbour that far away).

@@ -23,7 +23,7 @@ from ..camera import Camera
 from .blend import Observation, Photo, accumulate, blended, focus_measure, observe, sharpness_weights
 from .config import ColorizeConfig
 from .cull import CELL_VOXELS, Cells, make_cells, rows_in_view
-from .depth import SplatLayout, depth_slope, diameter_px, fill_gaps, finish, splat
+from .depth import SplatLayout, crop, depth_slope, diameter_px, fill_gaps, finish, splat
 from .gains import clear_observations, estimate_gains
 from .project import project
 from .surface import default_voxel_m, local_surface
@@ -113,7 +113,8 @@ def chunk_cells(points: np.ndarray, plan: Plan) -> Cells:
 
 
 def depth_task(shared: tuple, item: tuple[int, int, tuple[int, ...]]) -> tuple:
-    """Pass 1 on rows [start, stop) for photos ``ids``: returns (ids, [(H, W) float32 depth maps], sample).
+    """Pass 1 on rows [start, stop) for photos ``ids``: returns (ids, [float32 depth maps with their
+    margin, ``depth.finish``], sample).
 
     sample: (points (m, 3) float64, spacing (m,), normals (m, 3)) of the rows that are multiples of the
     sample stride, or None (the sample comes with the first photo group only).
@@ -129,8 +130,9 @@ def depth_task(shared: tuple, item: tuple[int, int, tuple[int, ...]]) -> tuple:
         view = views[k]
         layout = SplatLayout.for_camera(view.camera, vis)
         buffer = layout.empty()
-        rows = rows_in_view(cells, view.camera, view.cam_from_world, vis.near_m)
-        pr = project(points, view.camera, view.cam_from_world, vis.near_m, rows)
+        # points just outside the photo splat into it too (an occluder across the image border)
+        rows = rows_in_view(cells, view.camera, view.cam_from_world, vis.near_m, layout.margin_px)
+        pr = project(points, view.camera, view.cam_from_world, vis.near_m, rows, layout.margin_px)
         # einsum, not ``@``: BLAS threads of several pool workers would fight over the cores
         normals_cam = np.einsum(
             "nk,jk->nj", normals[pr.index], view.cam_from_world[:3, :3].astype(np.float32)
@@ -164,7 +166,8 @@ def colour_task(shared: tuple, item: tuple[int, int]) -> tuple[np.ndarray, np.nd
 def depth_pass(
     source: Any, views: list[View], plan: Plan, run: batch.InlineRunner, progress: Progress | None = None
 ) -> tuple[list[np.ndarray], tuple]:
-    """Returns every photo's (H, W) float32 depth map and the strided sample (points, spacing, normals)."""
+    """Returns every photo's (H, W) float32 depth map (gaps closed) and the strided sample (points, spacing,
+    normals)."""
     ranges = chunk_ranges(source.num_points, plan.config.chunk_points)
     # enough tasks to keep every worker busy: split the photos into groups when chunks are few
     groups = min(max(math.ceil(2 * run.workers / len(ranges)), 1), len(views))
@@ -183,7 +186,7 @@ def depth_pass(
         if progress:
             progress("depth", done, len(items))
     merged = tuple(np.concatenate(column) for column in zip(*samples, strict=True))
-    return [fill_gaps(m, plan.config.visibility) for m in maps if m is not None], merged
+    return [crop(fill_gaps(m, plan.config.visibility)) for m in maps if m is not None], merged
 
 
 def prepare_photos(photos: list[Photo], maps: list[np.ndarray], sample: tuple, plan: Plan) -> list[Photo]:

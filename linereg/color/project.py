@@ -33,9 +33,11 @@ def project(
     cam_from_world: np.ndarray,
     near_m: float,
     rows: np.ndarray | None = None,
+    margin_px: float = 0.0,
 ) -> Projection:
     """Returns the Projection of (P, 3) float64 world points into the photo of ``camera`` at
-    ``cam_from_world`` (4, 4): the points with depth > ``near_m`` whose pixel lies in the image.
+    ``cam_from_world`` (4, 4): the points with depth > ``near_m`` whose pixel lies in the image, or at
+    most ``margin_px`` outside it (what a splat reaches into the image from).
 
     rows: (n,) int64 the only rows to consider (``cull.rows_in_view``), default all; ``index`` counts
     rows of ``points`` either way.
@@ -52,28 +54,38 @@ def project(
     y = (p[:, 0] * R[1, 0] + p[:, 1] * R[1, 1] + p[:, 2] * R[1, 2] + t[1]) / z
     if camera.has_distortion:
         # a distortion polynomial folds back far outside the image: keep the undistorted field of view first
-        lo, hi = field_of_view(camera)
+        lo, hi = field_of_view(camera, margin_px)
         keep = np.flatnonzero((x >= lo[0]) & (x <= hi[0]) & (y >= lo[1]) & (y <= hi[1]))
         rows, x, y, z = rows[keep], x[keep], y[keep], z[keep]
         x, y = _distort(x, y, camera.dist)
     u = (camera.fx * x + camera.cx).astype(np.float32)
     v = (camera.fy * y + camera.cy).astype(np.float32)
-    inside = np.flatnonzero((u >= -0.5) & (u < camera.width - 0.5) & (v >= -0.5) & (v < camera.height - 0.5))
+    m = margin_px
+    inside = np.flatnonzero(
+        (u >= -0.5 - m) & (u < camera.width - 0.5 + m) & (v >= -0.5 - m) & (v < camera.height - 0.5 + m)
+    )
     return Projection(rows[inside], u[inside], v[inside], z[inside].astype(np.float32))
 
 
-def field_of_view(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((2,), (2,)) the box of normalised coordinates (x / z, y / z) the image can show.
+def field_of_view(camera: Camera, margin_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((2,), (2,)) the box of normalised coordinates (x / z, y / z) the image can show, widened
+    by ``margin_px`` on every side.
 
     Pinhole: the image border exactly; with distortion, the border undistorted, 5 % wider.
     """
+    m = margin_px
     if not camera.has_distortion:
-        lo = np.array([(-0.5 - camera.cx) / camera.fx, (-0.5 - camera.cy) / camera.fy])
+        lo = np.array([(-0.5 - m - camera.cx) / camera.fx, (-0.5 - m - camera.cy) / camera.fy])
         hi = np.array(
-            [(camera.width - 0.5 - camera.cx) / camera.fx, (camera.height - 0.5 - camera.cy) / camera.fy]
+            [
+                (camera.width - 0.5 + m - camera.cx) / camera.fx,
+                (camera.height - 0.5 + m - camera.cy) / camera.fy,
+            ]
         )
         return lo, hi
-    return _undistorted_bounds(camera)
+    lo, hi = _undistorted_bounds(camera)
+    widen = m / np.array([camera.fx, camera.fy])
+    return lo - widen, hi + widen
 
 
 def _distort(x: np.ndarray, y: np.ndarray, dist: tuple[float, ...]) -> tuple[np.ndarray, np.ndarray]:
