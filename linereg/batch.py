@@ -9,12 +9,14 @@ optional (``pip install 'linereg[cluster]'``) and imported only when a scheduler
 from __future__ import annotations
 
 import collections
+import contextlib
 import itertools
 import multiprocessing
 import sys
 import uuid
 from collections.abc import Callable, Iterable, Iterator
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from typing import Any
 
 from .errors import InvalidInputError
@@ -62,6 +64,18 @@ class PoolRunner(InlineRunner):
         return pool, token
 
     def unordered(self, fn: Task, shared: Any, items: Iterable) -> Iterator[tuple[int, Any]]:
+        with _explained():
+            yield from self._unordered(fn, shared, items)
+
+    def ordered(self, fn: Task, shared: Any, items: Iterable) -> Iterator[Any]:
+        with _explained():
+            pool, token = self._pool(shared)
+            with pool:
+                yield from _bounded_in_order(
+                    lambda item: pool.submit(_call, fn, token, item), items, 2 * self.workers
+                )
+
+    def _unordered(self, fn: Task, shared: Any, items: Iterable) -> Iterator[tuple[int, Any]]:
         pool, token = self._pool(shared)
         with pool:
             futures = {pool.submit(_call, fn, token, item): i for i, item in enumerate(items)}
@@ -75,12 +89,18 @@ class PoolRunner(InlineRunner):
                 for future in pending:
                     future.cancel()
 
-    def ordered(self, fn: Task, shared: Any, items: Iterable) -> Iterator[Any]:
-        pool, token = self._pool(shared)
-        with pool:
-            yield from _bounded_in_order(
-                lambda item: pool.submit(_call, fn, token, item), items, 2 * self.workers
-            )
+
+@contextlib.contextmanager
+def _explained() -> Iterator[None]:
+    """Re-raises a broken pool with its usual causes, the script's missing main guard first."""
+    try:
+        yield
+    except BrokenProcessPool as e:
+        raise BrokenProcessPool(
+            f'{e} Usual causes: a script that starts the pool without `if __name__ == "__main__":` '
+            "round its work (workers started clean import the script again and run it), a worker killed "
+            "(out of memory)."
+        ) from e
 
 
 class DaskRunner(InlineRunner):
@@ -134,7 +154,11 @@ class DaskRunner(InlineRunner):
 def runner(workers: int = 1, scheduler: str | None = None, fork: bool = True) -> InlineRunner:
     """Returns the runner of a batch: a Dask cluster if ``scheduler`` is an address, else ``workers``
     local processes (1: this process), forked from this one or (``fork=False``) started clean: slower to
-    start, but safe after this process ran OpenCV's thread pool."""
+    start, but safe after this process ran OpenCV's thread pool.
+
+    Workers started clean (``fork=False``, and any pool on macOS / Windows) import the script that
+    started them again, so a script must keep its work under ``if __name__ == "__main__":``.
+    """
     if scheduler:
         return DaskRunner(scheduler)
     if workers < 1:

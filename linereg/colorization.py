@@ -66,6 +66,18 @@ def colorize_file(
 
     Memory stays bounded whatever the cloud's size: a chunk, the photos and their depth buffers. ``run``: a
     runner of ``linereg.batch`` (default: this process); workers read the cloud file themselves.
+
+    With a local process pool, a script must keep its work under ``if __name__ == "__main__":``: the
+    workers start clean (``batch.runner(workers, fork=False)``, as ``linereg colorize`` does; a worker
+    forked after OpenCV's thread pool ran can hang), and a clean worker imports the script that started
+    it again. Without the guard it runs the script anew and the pool breaks (``BrokenProcessPool``)::
+
+        if __name__ == "__main__":
+            photos = read_localized_photos("poses.json", "camera.json")
+            with batch.runner(workers=2, fork=False) as run:
+                colorize_file("scan.laz", "scan_rgb.laz", photos, run=run)
+
+    The CLI (``linereg colorize``, ``python -m linereg colorize``) needs nothing.
     """
     from . import io
 

@@ -325,3 +325,19 @@ def test_no_point_behind_an_occluder_is_coloured_at_range():
     front = points[len(far) :]
     in_image = np.abs(CAMERA.fx * front[:, 0] / front[:, 2]) < CAMERA.cx - 1.0
     assert (seen[len(far) :][in_image] > 0).mean() > 0.9  # the occluders themselves are seen
+
+
+def test_a_script_without_a_main_guard_is_told_why_its_pool_broke(tmp_path):
+    import subprocess
+    import sys
+
+    work = "with batch.runner(2, fork=False) as run:\n    print(sorted(run.unordered(operator.add, 1, [1, 2])))\n"
+    guarded = "if __name__ == '__main__':\n" + "".join(f"    {line}\n" for line in work.splitlines())
+    answers = {}
+    for name, body in (("bare", work), ("guarded", guarded)):
+        (tmp_path / f"{name}.py").write_text("import operator\n\nfrom linereg import batch\n\n" + body)
+        answers[name] = subprocess.run(
+            [sys.executable, str(tmp_path / f"{name}.py")], capture_output=True, text=True, timeout=120
+        )
+    assert answers["guarded"].returncode == 0 and "[(0, 2), (1, 3)]" in answers["guarded"].stdout
+    assert answers["bare"].returncode != 0 and 'if __name__ == "__main__":' in answers["bare"].stderr
