@@ -125,7 +125,13 @@ class PlaneDirectionsConfig:
     # planes meeting at a smaller angle give no reliable crease: n_a x n_b amplifies errors by 1 / sin
     crease_min_angle_deg: float = 20.0
     in_plane_deg: float = 3.0  # a direction this close to a plane's surface lies in it
+    # a dominant plane this close to perpendicular to the frame's reference plane is one of its walls
+    # (fused RGB-D rooms: walls 1-2 degrees off the floor's perpendicular)
+    perpendicular_deg: float = 5.0
     max_regions: int = 2000  # only the largest regions vote: they hold the area; the (R, R) test stays small
+    # plane directions rank before clusters of segments alone: a real cloud's clutter (far-range depth
+    # noise) holds more segment length than its walls' edges, and its segments lean by degrees
+    planes_first: bool = True
 
 
 @dataclass(frozen=True)
@@ -183,6 +189,9 @@ class MapBuildConfig:
     sensor_edges: bool = True  # occluding contours and ring edges where the sensor origin is known
     surfaces: bool = True  # keep the planar regions as a mesh (occlusion-aware visibility)
     mesh_cell_m: float = 0.1  # the surface mesh's cells are at least this (and the region's raster cell)
+    # the direction clusters take the directions of the dominant planes (``map.plane_directions``)
+    plane_directions: bool = True
+    directions: PlaneDirectionsConfig = field(default_factory=PlaneDirectionsConfig)
 
     @classmethod
     def from_dict(cls, d: dict[str, Any]) -> MapBuildConfig:

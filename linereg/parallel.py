@@ -54,7 +54,7 @@ def parallel_clusters(lines3d: np.ndarray, config: ParallelConfig | None = None)
     labels, directions = merge_clusters(np.array(found).reshape(-1, 3), labels, config.merge_angle_deg)
     directions = refit_directions(d, lengths**2, labels, directions, largest=True)
     # segments left out by RANSAC join a merged direction they pass; merged members stay
-    assigned = _assign(d, directions, cos_thr, usable)
+    assigned = nearest_direction(d, directions, cos_thr, usable)
     labels = np.where(assigned >= 0, assigned, labels)
     directions = refit_directions(d, lengths**2, labels, directions, largest=True)
     return sort_clusters(directions, labels, lengths, config.min_lines, config.top_k, diverse=True)
@@ -116,7 +116,9 @@ def _best_cluster(
     return (np.abs(d @ refined) >= cos_thr) & left
 
 
-def _assign(d: np.ndarray, directions: np.ndarray, cos_thr: np.ndarray, usable: np.ndarray) -> np.ndarray:
+def nearest_direction(
+    d: np.ndarray, directions: np.ndarray, cos_thr: np.ndarray, usable: np.ndarray
+) -> np.ndarray:
     """Returns (M,) int64 index of the most parallel direction within each segment's (M,) threshold, else -1."""
     if len(directions) == 0:
         return np.full(len(d), -1, dtype=np.int64)

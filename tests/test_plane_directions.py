@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
-from linereg.config import PlaneDirectionsConfig
+from linereg.config import MapBuildConfig, PlaneDirectionsConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import axis_angle_deg
-from linereg.map.plane_directions import dominant_normals, map_clusters, plane_directions
+from linereg.map.linemap import LineMap
+from linereg.map.plane_directions import dominant_normals, frame_directions, map_clusters, plane_directions
 
 
 def unit(v) -> np.ndarray:
@@ -105,3 +106,121 @@ def test_without_planes_it_is_parallel_clusters(rng):
 def test_bad_input():
     with pytest.raises(InvalidInputError):
         map_clusters(np.zeros((3, 4)), np.zeros((0, 3)), np.zeros(0))
+
+
+def rotation_about(axis, angle_deg) -> np.ndarray:
+    axis = unit(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    t = np.radians(angle_deg)
+    return np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+
+
+def test_frame_directions_leave_tilted_planes_out(rng):
+    # a room (floor, two walls 1.5 deg off perpendicular) with two large tilted planes (a sofa's back, a
+    # leaning board): their creases with the room are no frame direction
+    wall_a = unit(WALL_A + np.array([0, 0, np.tan(np.radians(1.5))]))
+    tilted = [unit([1.0, 0.0, 1.2]), unit([0.3, 1.0, -0.5])]
+    normals = np.vstack([FLOOR, wall_a, WALL_B, *tilted])
+    directions, support = frame_directions(normals, np.array([10.0, 4.0, 3.0, 6.0, 5.0]))
+    assert len(directions) == 3 and np.all(support > 0)
+    for axis in (FLOOR, WALL_A, WALL_B):
+        assert min(angle_deg(d, axis) for d in directions) < 1.6
+    assert angle_deg(directions[np.argmin([angle_deg(d, FLOOR) for d in directions])], FLOOR) < 1e-6
+    # every horizontal direction is exactly perpendicular to the reference (the floor)
+    assert np.sort(np.abs(directions @ FLOOR))[:2] == pytest.approx([0.0, 0.0], abs=1e-12)
+
+
+def test_frame_directions_need_a_perpendicular_pair():
+    roof = unit([0.0, np.sin(np.radians(40)), np.cos(np.radians(40))])
+    directions, support = frame_directions(np.array([roof, [0.0, 1.0, 0.0]]), np.array([5.0, 5.0]))
+    assert directions.shape == (0, 3) and support.shape == (0,)
+    one, _ = frame_directions(np.array([FLOOR]), np.array([5.0]))
+    assert len(one) == 0
+
+
+def test_map_clusters_take_the_planes_directions_not_the_biased_segments(rng):
+    # a room turned about a tilted axis; its planes are exact, its segments short, noisy and biased: the
+    # "vertical" ones lean 10 deg, and far-range clutter in random directions holds most of the length
+    R = rotation_about([0.3, -0.5, 0.8], 25.0)
+    floor, wall_a, wall_b = R @ FLOOR, R @ WALL_A, R @ WALL_B
+    lean = rotation_about(wall_a, 10.0) @ floor
+    parts = []
+    for axis, count in ((lean, 60), (wall_a, 25), (np.cross(floor, wall_a), 25)):
+        c = rng.uniform(-3, 3, (count, 3))
+        d = jittered(rng, axis, count, 2.0)
+        parts.append(np.c_[c - 0.2 * d, c + 0.2 * d])
+    c, d = rng.uniform(-5, 5, (400, 3)), unit(rng.normal(size=(400, 3)))
+    parts.append(np.c_[c - 0.25 * d, c + 0.25 * d])
+    lines3d = np.concatenate(parts)
+    normals = np.vstack([jittered(rng, n, 10, 0.3) for n in (floor, wall_a, wall_b)])
+    areas = np.r_[np.full(10, 2.0), np.full(10, 1.0), np.full(10, 0.8)]
+    clusters = map_clusters(lines3d, normals, areas)
+    assert len(clusters) == 3
+    for axis in (floor, wall_a, wall_b):
+        assert min(angle_deg(x, axis) for x in clusters.directions) < 1.0
+    # the segments alone give the leaning direction, not the vertical
+    alone = map_clusters(lines3d, np.zeros((0, 3)), np.zeros(0))
+    assert min(angle_deg(x, floor) for x in alone.directions) > 5.0
+    assert clusters.labels.shape == (len(lines3d),) and clusters.labels.dtype == np.int64
+    assert np.all(clusters.labels >= -1) and np.all(clusters.labels < 3)
+
+
+def test_map_clusters_keep_segment_clusters_without_a_frame(rng):
+    # one dominant plane (the ground of a sweep): no frame; the poles and curbs keep their clusters
+    c = rng.uniform(-10, 10, (40, 3))
+    pole, curb = unit([0.05, 0.0, 1.0]), unit([1.0, 0.2, 0.0])
+    lines3d = np.concatenate([np.c_[c[:20], c[:20] + 2.0 * pole], np.c_[c[20:], c[20:] + 3.0 * curb]])
+    clusters = map_clusters(lines3d, jittered(rng, FLOOR, 10, 0.3), np.full(10, 5.0))
+    assert len(clusters) == 2
+    assert angle_deg(clusters.directions[0], curb) < 0.1 and angle_deg(clusters.directions[1], pole) < 0.1
+
+
+def test_build_takes_the_directions_of_a_box_rooms_planes(rng):
+    # a box room, turned: its walls' points are exact planes; clutter boxes and noise add short segments
+    R = rotation_about([0.2, 1.0, 0.4], 30.0)
+    n = 6000
+    u = rng.uniform(0, 1, (5, n, 2))
+    faces = [
+        np.c_[4 * u[0, :, 0], 3 * u[0, :, 1], np.zeros(n)],  # floor 4 x 3
+        np.c_[4 * u[1, :, 0], np.zeros(n), 2.5 * u[1, :, 1]],
+        np.c_[4 * u[2, :, 0], np.full(n, 3.0), 2.5 * u[2, :, 1]],
+        np.c_[np.zeros(n), 3 * u[3, :, 0], 2.5 * u[3, :, 1]],
+        np.c_[np.full(n, 4.0), 3 * u[4, :, 0], 2.5 * u[4, :, 1]],
+    ]
+    clutter = rng.uniform([0.5, 0.5, 0.0], [3.5, 2.5, 1.5], (3000, 3))
+    points = (np.concatenate([*faces, clutter]) + rng.normal(0, 0.003, (5 * n + 3000, 3))) @ R.T
+    line_map = LineMap.build(points)
+    assert len(line_map.clusters) == 3
+    for axis in R.T:
+        assert min(angle_deg(x, axis) for x in line_map.clusters.directions) < 1.0
+    plain = LineMap.build(points, MapBuildConfig(plane_directions=False))
+    assert len(plain.clusters) > 0
+
+
+def test_frame_of_a_street_stands_on_its_ground():
+    # a road and a sidewalk sloped 4 deg along the street are one ground: the facade, perpendicular to
+    # both, is no reference (the frame is the road's normal, the curb and the facade's normal)
+    road, facade = unit([0.0, 0.0, 1.0]), unit([0.0, 1.0, 0.0])
+    sidewalk = rotation_about([0.0, 1.0, 0.0], 4.0) @ road
+    directions, _ = frame_directions(np.array([road, sidewalk, facade]), np.array([100.0, 80.0, 60.0]))
+    assert len(directions) == 3
+    for axis in (road, facade, [1.0, 0.0, 0.0]):
+        assert min(angle_deg(d, axis) for d in directions) < 1e-6
+
+
+def test_segments_that_show_the_frame_keep_their_clusters(rng):
+    # an exact scan: the segments' clusters lie within the paper's 1 deg of the planes' directions; the map
+    # keeps them as they are (members and all)
+    parts = []
+    for axis in (FLOOR, WALL_A, WALL_B):
+        c = rng.uniform(-3, 3, (30, 3))
+        d = jittered(rng, axis, 30, 0.2)
+        parts.append(np.c_[c - 0.5 * d, c + 0.5 * d])
+    lines3d = np.concatenate(parts)
+    normals, areas = room_regions(rng)
+    clusters, alone = (
+        map_clusters(lines3d, normals, areas),
+        map_clusters(lines3d, np.zeros((0, 3)), np.zeros(0)),
+    )
+    np.testing.assert_array_equal(clusters.directions, alone.directions)
+    np.testing.assert_array_equal(clusters.labels, alone.labels)

@@ -28,7 +28,8 @@ logger = logging.getLogger(__name__)
 
 class MapContent(NamedTuple):
     """What map building found: (M, 6) float64 ``segments``, (M,) int8 ``kinds``, the ``surfaces`` mesh, the
-    cloud's ``profile``, the ``config`` used and, for an empty map, the ``reason``."""
+    cloud's ``profile``, the ``config`` used, for an empty map the ``reason``, and the planar regions'
+    (R, 3) unit ``plane_normals`` and (R,) ``plane_areas`` (m^2: points x spacing^2) for the directions."""
 
     segments: np.ndarray
     kinds: np.ndarray
@@ -36,6 +37,8 @@ class MapContent(NamedTuple):
     profile: CloudProfile
     config: Lines3DConfig
     reason: str
+    plane_normals: np.ndarray = np.zeros((0, 3))
+    plane_areas: np.ndarray = np.zeros(0)
 
 
 def extract_map(
@@ -86,7 +89,10 @@ def extract_map(
     reason = "" if len(segments) else _why_empty(len(planes.counts), lines_config)
     logger.info("%s cloud: %d segments (%s)", profile.kind, len(segments), kinds.kind_counts(kind))
     surfaces = concat_surfaces([surfaces], offset) if len(surfaces) else empty_surfaces()
-    return MapContent(segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason)
+    areas = planes.counts * planes.spacing_m**2
+    return MapContent(
+        segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas
+    )
 
 
 def _why_empty(num_regions: int, config: Lines3DConfig) -> str:

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..camera import Camera
-from ..config import Lines3DConfig, MapBuildConfig, ParallelConfig, VisibilityConfig
+from ..config import Lines3DConfig, MapBuildConfig, ParallelConfig, PlaneDirectionsConfig, VisibilityConfig
 from ..directions import DirectionClusters
 from ..errors import FileFormatError
 from ..geometry import camera_center
@@ -111,6 +111,7 @@ class LineMap:
         }
         if content.reason:
             extra["empty_reason"] = content.reason
+        planes = (content.plane_normals, content.plane_areas) if config.plane_directions else None
         return cls.from_segments(
             content.segments,
             name=name,
@@ -118,6 +119,8 @@ class LineMap:
             progress=progress,
             kinds=content.kinds,
             surfaces=content.surfaces,
+            planes=planes,
+            plane_config=config.directions,
             **(extra | metadata),
         )
 
@@ -131,12 +134,19 @@ class LineMap:
         progress: Callable[[str], None] | None = None,
         kinds: np.ndarray | None = None,
         surfaces: Surfaces | tuple[np.ndarray, np.ndarray] | None = None,
+        planes: tuple[np.ndarray, np.ndarray] | None = None,
+        plane_config: PlaneDirectionsConfig | None = None,
         **metadata: Any,
     ) -> LineMap:
         """Returns the map of given (M, 6) float64 segments; ``tile_m`` defaults to 1/32 of the extent;
         ``kinds`` (M,) int (default ``kinds.UNKNOWN``); ``surfaces``: a Surfaces or (vertices (V, 3),
-        triangles (T, 3)) in the map frame that may hide segments (default none)."""
-        from ..parallel import parallel_clusters  # imported here: the map format does not depend on it
+        triangles (T, 3)) in the map frame that may hide segments (default none). ``planes``: (R, 3) unit
+        normals and (R,) areas (m^2) of the cloud's planar regions: the direction clusters take the
+        directions of the dominant ones (``plane_directions.map_clusters``, configured by ``plane_config``);
+        None: clusters of the segments alone (``parallel_clusters``)."""
+        # imported here: the map format does not depend on them
+        from ..parallel import parallel_clusters
+        from .plane_directions import map_clusters
 
         segments = check_segments(lines3d, "lines3d", 6)
         kinds = None if kinds is None else segment_kinds.check_kinds(kinds, len(segments))
@@ -144,7 +154,12 @@ class LineMap:
             surfaces = make_surfaces(*surfaces)
         if progress:
             progress("clusters")
-        clusters = parallel_clusters(segments, parallel_config) if len(segments) else _no_clusters()
+        if not len(segments):
+            clusters = _no_clusters()
+        elif planes is not None:
+            clusters = map_clusters(segments, *planes, parallel_config, plane_config)
+        else:
+            clusters = parallel_clusters(segments, parallel_config)
         meta = {
             "format_version": FORMAT_VERSION,
             "map_id": uuid.uuid4().hex,
