@@ -329,6 +329,10 @@ class DecideConfig:
     # of a dense map explain as much
     min_explained_fraction: float = 0.15
     contenders: int = 4  # the best distinct poses of the search are refined before deciding
+    # the best pose turned (pan, tilt) beyond distinct_angle_deg, moving its projection up to this fraction
+    # of the image diagonal, is a rival too: where the image's clutter lets a displaced copy of the map
+    # explain nearly as much, the alignment is chance, whether or not the search found the true pose
+    turn_reach_fraction: float = 0.06
     # an image segment is matched to the map segment covering most of it, if that covers more than this
     # fraction of it (the paper's overlap test)
     min_cover: float = 0.5

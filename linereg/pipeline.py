@@ -21,14 +21,14 @@ from .camera import Camera
 from .config import DecideConfig, RegisterConfig
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .geometry import camera_center, rotation_error_deg
+from .geometry import camera_center, rotation_error_deg, rotation_from_vector
 from .parallel import parallel_clusters
 from .points import Points, image_points, map_gap_m, map_points
 from .priors import Prior, admits, search_region
 from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
 from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
-from .score import image_lines
+from .score import ImageLines, image_lines, project_clipped, shifted_values
 from .search import Found, MapSignatures, map_signatures, search
 from .timing import StageTimer
 from .vanishing import vanishing_directions
@@ -144,30 +144,35 @@ def register_undistorted(
             )
             for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
-    return decide(refined, found, view.segments, image.total_length, config, timer)
+    return decide(refined, found, view, image, camera, config, timer)
 
 
 def decide(
     refined: list[Refinement],
     found: list[Found],
-    lines3d: np.ndarray,
-    image_length: float,
+    view: MapView,
+    image: ImageLines,
+    camera: Camera,
     config: RegisterConfig,
     timer: StageTimer,
 ) -> Registration:
     """Returns the Registration of the best refined pose: ``success`` only when it explains enough of the
-    image with enough matches and every distinct pose scores below ``(1 - margin)`` of it."""
+    image with enough matches and every distinct pose scores below ``(1 - margin)`` of it: the other poses
+    found, and the best pose itself turned by small angles (``turned_rivals``), which the search need not
+    have visited."""
     dc = config.decide
+    lines3d = view.segments
     refined = sorted(refined, key=lambda r: -r.score.value)
     best = refined[0]
     rivals = [(r.cam_from_world, r.score.value) for r in refined[1:]]
     rivals += [(f.cam_from_world, f.score.value) for f in found]
     rivals = [(T, s) for T, s in rivals if _differs(T, best.cam_from_world, lines3d, dc)]
+    rivals.append(turned_rival(best.cam_from_world, image, lines3d, camera, config, view.visible))
     rivals.sort(key=lambda p: -p[1])
     alternatives = _distinct(rivals, _first, lines3d, dc)[:8]
     runner_up = max((s for _, s in alternatives), default=0.0)
     matches = best.score.matches(dc.min_cover)
-    explained = best.score.explained_length / max(image_length, 1e-9)
+    explained = best.score.explained_length / max(image.total_length, 1e-9)
     reason = ""
     if best.score.value <= 0 or explained < dc.min_explained_fraction:
         reason = f"the best pose explains {100 * explained:.0f} % of the image's lines (< {100 * dc.min_explained_fraction:.0f} %)"
@@ -196,6 +201,49 @@ def decide(
         alternative_scores=np.array([s for _, s in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
+
+
+def turned_rival(
+    cam_from_world: np.ndarray,
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    config: RegisterConfig,
+    visible: np.ndarray | None = None,
+) -> tuple[np.ndarray, float]:
+    """Returns (pose, score) of the best-scoring turn of a pose by more than ``distinct_angle_deg``: the
+    (M, 6) map ``lines3d`` (``visible`` (M,) bool or None) seen from ``cam_from_world`` turned about its
+    centre.
+
+    A small pan or tilt moves the projection across the image (a shift, exact at the principal point); the
+    shifts tried run on a grid of ``distance_px * sqrt(2)`` (every line alignment falls within the score's
+    distance of a grid point) out to ``turn_reach_fraction`` of the image diagonal. A true alignment drops
+    off within a few pixels; a chance one, where the image's clutter would explain a displaced map about
+    as well, does not -- the test holds whether or not the search found the true pose.
+    """
+    dc, sc = config.decide, config.score
+    projected, _ = project_clipped(lines3d, camera, cam_from_world, sc.min_depth_m, visible)
+    inner = np.tan(np.radians(dc.distinct_angle_deg)) * np.array([camera.fx, camera.fy])
+    reach = max(dc.turn_reach_fraction * float(np.hypot(camera.width, camera.height)), 2.0 * inner.max())
+    step = np.sqrt(2.0) * sc.distance_px
+    grid = step * np.arange(-np.floor(reach / step), np.floor(reach / step) + 1)
+    shifts = np.stack(np.meshgrid(grid, grid), axis=-1).reshape(-1, 2)
+    shifts = shifts[np.hypot(*(shifts / inner).T) > 1.0]  # turned beyond the distinct angle
+    values = shifted_values(image, projected, shifts, sc)
+    k = int(np.argmax(values))
+    return _turned(cam_from_world, shifts[k], camera), float(values[k])
+
+
+def _turned(cam_from_world: np.ndarray, shift: np.ndarray, camera: Camera) -> np.ndarray:
+    """Returns the pose turned about its centre so that the principal point's ray moves by (2,) pixels."""
+    target = np.array([shift[0] / camera.fx, shift[1] / camera.fy, 1.0])
+    axis = np.cross([0.0, 0.0, 1.0], target)  # length sin(angle) * |target|
+    angle = float(np.arctan2(np.linalg.norm(axis), target[2]))
+    turn = rotation_from_vector(axis / max(float(np.linalg.norm(axis)), 1e-300) * angle)
+    out = cam_from_world.copy()
+    out[:3, :3] = turn @ cam_from_world[:3, :3]
+    out[:3, 3] = turn @ cam_from_world[:3, 3]
+    return out
 
 
 def _distinct(

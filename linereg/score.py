@@ -147,6 +147,21 @@ def score_projected(
     return Score(value, explained, unexplained, pairs, cover)
 
 
+def shifted_values(
+    image: ImageLines, projected: np.ndarray, shifts: np.ndarray, config: ScoreConfig
+) -> np.ndarray:
+    """Returns (S,) the score values of (K, 4) projected map segments moved by each of (S, 2) pixel
+    ``shifts``: ``score_projected(image, projected + (dx, dy, dx, dy), ...).value`` for every shift, in one
+    compiled loop (the decision compares a pose with these displaced copies of itself, ``pipeline.decide``)."""
+    projected = np.ascontiguousarray(projected, dtype=np.float64).reshape(-1, 4)
+    shifts = np.ascontiguousarray(shifts, dtype=np.float64).reshape(-1, 2)
+    return _shifted_values(
+        image.segments, image.angles, image.lengths, image.grid_ptr, image.grid_items, image.grid_w,
+        image.grid_px, image.empty, image.cell_px, projected, shifts, config.distance_px,
+        np.radians(config.angle_deg), config.unexplained_weight,
+    )  # fmt: skip
+
+
 def project_segments(
     lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarray, min_depth_m: float
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -364,6 +379,40 @@ def _length_in_cells(projected: np.ndarray, mask: np.ndarray, cell: float) -> fl
             if 0 <= r < h and 0 <= c < w and mask[r, c]:
                 total += step
     return total
+
+
+@numba.njit(cache=True)
+def _shifted_values(
+    segments: np.ndarray,
+    angles: np.ndarray,
+    lengths: np.ndarray,
+    grid_ptr: np.ndarray,
+    grid_items: np.ndarray,
+    grid_w: int,
+    grid_px: float,
+    empty: np.ndarray,
+    cell_px: float,
+    projected: np.ndarray,
+    shifts: np.ndarray,
+    distance: float,
+    angle_tol: float,
+    weight: float,
+) -> np.ndarray:
+    """The score value of ``projected`` moved by each shift (``shifted_values``)."""
+    out = np.empty(len(shifts))
+    moved = np.empty_like(projected)
+    for k in range(len(shifts)):
+        for j in range(len(projected)):
+            moved[j, 0] = projected[j, 0] + shifts[k, 0]
+            moved[j, 1] = projected[j, 1] + shifts[k, 1]
+            moved[j, 2] = projected[j, 2] + shifts[k, 0]
+            moved[j, 3] = projected[j, 3] + shifts[k, 1]
+        i, _, cover = _covering_pairs(
+            segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, moved, distance, angle_tol
+        )
+        explained = _union_lengths(i, cover, len(segments)).sum()
+        out[k] = explained - weight * _length_in_cells(moved, empty, cell_px)
+    return out
 
 
 def _segment_grid(
