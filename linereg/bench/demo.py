@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bench import report
+from ..bench import report, search_check
 
 STAGES = ("lines2d", "culling", "vanishing", "rotation", "translation", "refine", "total")
 TARGETS = {"success_rate": 1.0, "rotation_deg_median": 0.5, "position_m_median": 0.2, "whole_s": 60.0}
@@ -30,8 +30,10 @@ def localize_image(
     image: np.ndarray, line_map: Any, camera: Any, truth: np.ndarray, k: int, config: Any = None
 ) -> dict[str, Any]:
     """Returns the trial record of one photo: pose errors, success, inliers, stage times in ms."""
+    from ..config import RegisterConfig
     from ..geometry import pose_errors
-    from ..localization import localize
+    from ..lines2d import detect
+    from ..localization import localize, map_view
     from ..registration import Registration
 
     start = time.perf_counter()
@@ -45,7 +47,16 @@ def localize_image(
         "demo", k, result.success, errors, seconds, result.num_inliers, result.reason
     )
     stages = {name: 1e3 * s for name, s in result.timings.items()}
-    return record | {"image": k, "ambiguity": result.ambiguity, "stages_ms": stages}
+    record |= {"image": k, "ambiguity": result.ambiguity, "stages_ms": stages}
+    if result.cam_from_world is not None:  # outside the timing: the truth refined, for the search check
+        config = config or RegisterConfig()
+        lines2d = detect(image, camera)
+        right = report.trial_record("demo", k, True, pose_errors(result.cam_from_world, truth), 0.0)
+        view = map_view(line_map, None, config)
+        record["search_check"] = search_check.check(
+            lines2d, view, camera.undistorted(), truth, result, right["success"], config
+        )
+    return record
 
 
 def run_seed(
@@ -112,7 +123,12 @@ def summarize(seeds: list[dict[str, Any]]) -> dict[str, Any]:
         "position_m_median": bool(stats["position_m_median"] <= TARGETS["position_m_median"]),
         "whole_s": stats["whole_s"] <= TARGETS["whole_s"],
     }
-    return {"stats": stats, "failure_reasons": report.failure_reasons(records), "targets_met": verdict}
+    return {
+        "stats": stats,
+        "failure_reasons": report.failure_reasons(records),
+        "search_check": search_check.tally(records),
+        "targets_met": verdict,
+    }
 
 
 IMAGE_COLUMNS = (
@@ -163,6 +179,7 @@ def print_results(results: dict[str, Any]) -> None:
     )
     for name, value, target, ok in lines:
         print(f"{name:>15}: {value:>12}  target {target:<11} {'met' if ok else 'NOT met'}")
+    print(search_check.summary_line(results["summary"]["search_check"]))
     if results["summary"]["failure_reasons"]:
         print(f"failures: {results['summary']['failure_reasons']}")
 

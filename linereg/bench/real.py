@@ -34,7 +34,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bench import report
+from ..bench import report, search_check
 
 DATA_ENV = "LINEREG_DATA"
 
@@ -137,6 +137,15 @@ def localize_one(
     }
     if result.success and not record["success"]:
         record["reason"] = f"pose off by {rot:.1f} deg / {pos:.2f} m"
+    if result.cam_from_world is not None:
+        from ..config import RegisterConfig
+        from ..localization import map_view
+
+        camera = item.camera.undistorted()
+        rot_all, pos_all, _ = pose_errors(result.cam_from_world, item.cam_from_world)
+        right = bool(rot_all <= bounds[0] and pos_all <= bounds[1])
+        view = map_view(line_map, None, RegisterConfig())
+        record["search_check"] = search_check.check(lines2d, view, camera, item.cam_from_world, result, right)
     if stages:
         from .real_stages import stage_record
 
@@ -339,6 +348,7 @@ def run(args: argparse.Namespace) -> int:
     wrong = sum(bool(r.get("reported")) and not r["success"] for r in records)
     print(f"localized {done}/{len(records)} within {bounds[0]:g} deg / {bounds[1]:g} m of the ground truth")
     print(f"wrong but claimed: {wrong}/{len(records)} (reported as success, outside those bounds)")
+    print(search_check.summary_line(search_check.tally(records)))
     results = {
         "benchmark": "real",
         "data": str(data),
