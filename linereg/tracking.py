@@ -8,6 +8,8 @@ its marginal covariance back. A frame failing the checks is a loss: with odometr
 pose from the graph (``success=False``, reason "from neighbours ..."); a relocalization then runs, near the
 prediction (a ``Prior``), or globally after ``global_after_frames`` lost frames without odometry. The graph
 is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
+A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
+graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...".
 ``event`` says what the last step did: initialized, tracked, relocalized, predicted, lost.
 """
 
@@ -65,7 +67,44 @@ class TrackingConfig:
     window: int = 50  # frames in the iSAM2 graph before it is re-anchored at the newest pose
     # a refined frame explaining less than this share of what the last 5 fixes explained is not a fix
     min_explained_ratio: float = 0.6
+    # innovation gate: a refined frame is claimed (success) only if its Mahalanobis distance to the
+    # predicted pose (covariance: the last pose's marginal carried through the motion step, plus the
+    # motion's and the fix's own) is within this chi-square(6) quantile (0: no gate). A wrong basin (a
+    # window period off) lies many sigmas from the prediction; a doubted fix still enters the graph.
+    gate_probability: float = 0.999
     relinearize_threshold: float = 0.01
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """Returns the chi-square quantile (scipy)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(probability, dof))
+
+
+def innovation_distance(
+    predicted: np.ndarray,
+    fixed: np.ndarray,
+    previous_covariance: np.ndarray,
+    step: np.ndarray,
+    step_cov: np.ndarray,
+    fix_covariance: np.ndarray,
+) -> float:
+    """Returns the squared Mahalanobis distance of a fix (4, 4 cam_from_world) from its prediction.
+
+    The prediction is the previous pose moved by ``step`` (cam_prev_from_cam_this); its (6, 6) covariance is
+    the previous pose's marginal carried through the step (gtsam's right-perturbation convention, in the
+    camera frame, rotation first) plus ``step_cov``; the fix's own covariance is added (independent
+    measurements). Non-finite covariances count as zero (an unknown previous pose or fix: the gate uses
+    what is known)."""
+
+    def finite(c: np.ndarray | None) -> np.ndarray:
+        return c if c is not None and c.shape == (6, 6) and np.isfinite(c).all() else np.zeros((6, 6))
+
+    ad = gtsam.Pose3(step).inverse().AdjointMap()
+    covariance = ad @ finite(previous_covariance) @ ad.T + step_cov + finite(fix_covariance)
+    xi = gtsam.Pose3.Logmap(to_pose3(predicted).between(to_pose3(fixed)))
+    return float(xi @ np.linalg.solve(covariance, xi))
 
 
 class Tracker:
@@ -145,7 +184,9 @@ class Tracker:
             tracked = self._track(image, starts, radius)
             if tracked.success:
                 self.event = "tracked"
-                return self._add(image, tracked, step, cov)
+                doubt = self._doubt(tracked, predicted, step, cov)
+                added = self._add(image, tracked, step, cov)
+                return added if not doubt else replace(added, success=False, reason=doubt)
         self._lost += 1
         if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % cfg.relocalize_every == 0:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
@@ -175,6 +216,27 @@ class Tracker:
         if best.success:
             self._explained = [*self._explained[-4:], best.explained_fraction]
         return best
+
+    def _doubt(
+        self, tracked: Registration, predicted: np.ndarray, step: np.ndarray | None, cov: np.ndarray | None
+    ) -> str:
+        """Returns why a fix is not claimed ("" when it is): its pose lies farther from the prediction than
+        ``gate_probability`` of the predicted distribution allows (the chi-square innovation gate). The fix
+        still enters the graph (refusing it outright strands the tracker when the covariances are
+        optimistic); the frame is reported with the graph's pose, ``success=False``."""
+        p = self.config.gate_probability
+        if not p or step is None or cov is None:
+            return ""
+        d2 = innovation_distance(
+            predicted, tracked.cam_from_world, self._covariance(), step, cov, tracked.covariance
+        )
+        limit = chi2_quantile(p, 6)
+        if d2 <= limit:
+            return ""
+        return (
+            f"{FROM_NEIGHBOURS} and its lines: its own fix is {math.sqrt(d2):.1f} sigma from the prediction "
+            f"(gate {math.sqrt(limit):.1f} sigma), so it is not claimed"
+        )
 
     def _predict(
         self, relative: np.ndarray | None, stamp: float | None

@@ -12,12 +12,12 @@ import pytest
 from linereg.camera import Camera
 from linereg.errors import InvalidInputError
 from linereg.geometry import invert, pose_errors
-from linereg.graph import relative_pose
+from linereg.graph import from_pose3, relative_pose, to_pose3
 from linereg.map.linemap import LineMap
 from linereg.priors import Prior
 from linereg.sequence import FROM_NEIGHBOURS, SequenceConfig, localize_sequence
 from linereg.sim.synthetic import look_at, project_visible
-from linereg.tracking import Tracker
+from linereg.tracking import Tracker, TrackingConfig, innovation_distance
 
 CAMERA = Camera(fx=800.0, fy=800.0, cx=320.0, cy=240.0, width=640, height=480)
 BLANK = np.zeros((0, 4))
@@ -132,6 +132,39 @@ def test_tracker_tracks_coasts_and_recovers(scene):
         assert pose_errors(r.cam_from_world, truth[k])[1] < 0.01
         assert r.success == (k != 2)
     assert events == ["tracked", "tracked", "predicted", "tracked", "tracked", "tracked"]
+
+
+def test_innovation_distance_is_the_mahalanobis_distance_of_the_fix_from_its_prediction():
+    predicted = look_at(np.array([4.0, 0.0, 0.8]), np.zeros(3))
+    nudge = gtsam.Pose3(gtsam.Rot3(), gtsam.Point3(0.03, 0.0, 0.0))  # 3 cm along the camera's x
+    fixed = from_pose3(to_pose3(predicted).compose(nudge))
+    step = np.eye(4)
+    step[:3, 3] = [0.0, 0.0, 0.5]
+    q = np.diag([1e-6] * 3 + [0.01**2] * 3)
+    unknown = np.full((6, 6), np.nan)
+    assert innovation_distance(predicted, predicted, unknown, step, q, unknown) == pytest.approx(0.0)
+    assert innovation_distance(predicted, fixed, unknown, step, q, unknown) == pytest.approx(9.0, rel=1e-6)
+    # the previous pose's and the fix's own uncertainty widen the gate: 3 cm over sqrt(3) cm
+    previous = np.diag([0.0] * 3 + [0.01**2] * 3)  # a pure translation step carries it unchanged
+    d2 = innovation_distance(predicted, fixed, previous, step, q, previous)
+    assert d2 == pytest.approx(3.0, rel=1e-6)
+
+
+def test_tracker_does_not_claim_a_fix_many_sigmas_from_its_prediction(scene):
+    line_map, truth, frames = scene
+    relative, _ = _odometry(truth)
+    lying = relative[0].copy()
+    lying[:3, 3] += [0.0, 0.0, 0.1]  # odometry 10 cm off, its covariance says ~1 cm: the fix disagrees
+    for probability, claimed in ((TrackingConfig().gate_probability, False), (0.0, True)):
+        tracker = Tracker(line_map, CAMERA, TrackingConfig(gate_probability=probability))
+        tracker.start_at(truth[0], sigma_rot_deg=0.1, sigma_pos_m=0.005)
+        assert tracker.step(frames[0]).success
+        r = tracker.step(frames[1], lying)
+        assert tracker.event == "tracked" and r.success == claimed
+        if not claimed:
+            assert r.reason.startswith(FROM_NEIGHBOURS) and "sigma from the prediction" in r.reason
+        r = tracker.step(frames[2], relative[1])  # the graph took the fix in: tracking goes on
+        assert r.success and pose_errors(r.cam_from_world, truth[2])[1] < 0.05
 
 
 def test_tracker_bad_input_leaves_the_session_alive(scene):
