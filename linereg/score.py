@@ -317,8 +317,8 @@ def _covering_pairs(
                 if hi > lo:
                     if n == cap:
                         cap *= 2
-                        out_i = _grow_int(out_i, cap)
-                        out_j = _grow_int(out_j, cap)
+                        out_i = grow(out_i, cap)
+                        out_j = grow(out_j, cap)
                         out_c = _grow_2(out_c, cap)
                     out_i[n], out_j[n] = i, j
                     out_c[n, 0], out_c[n, 1] = lo, hi
@@ -327,7 +327,8 @@ def _covering_pairs(
 
 
 @numba.njit(cache=True)
-def _grow_int(a: np.ndarray, cap: int) -> np.ndarray:
+def grow(a: np.ndarray, cap: int) -> np.ndarray:
+    """Returns a 1-D array of ``cap`` slots of ``a``'s dtype starting with ``a`` (compiled kernels' buffers)."""
     out = np.empty(cap, a.dtype)
     out[: len(a)] = a
     return out

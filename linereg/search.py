@@ -26,7 +26,7 @@ from .config import ScoreConfig, SearchConfig
 from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_from_vector
 from .line_factor import LineProjection
 from .points import Points
-from .score import ImageLines, Score, score_pose
+from .score import ImageLines, Score, grow, score_pose
 
 log = logging.getLogger(__name__)
 
@@ -341,7 +341,7 @@ def _pairs_kernel(
                         far = x_len[m, 0] / max(q_len[k, 0], 1e-9)
                     if count == cap:
                         cap *= 2
-                        out_k, out_m, out_lam = _grow(out_k, cap), _grow(out_m, cap), _grow(out_lam, cap)
+                        out_k, out_m, out_lam = grow(out_k, cap), grow(out_m, cap), grow(out_lam, cap)
                     out_k[count], out_m[count], out_lam[count] = k, m, length_ratio * far
                     count += 1
         # map points with an arm outside every cluster: the direct test
@@ -368,17 +368,10 @@ def _pairs_kernel(
                     continue
             if count == cap:
                 cap *= 2
-                out_k, out_m, out_lam = _grow(out_k, cap), _grow(out_m, cap), _grow(out_lam, cap)
+                out_k, out_m, out_lam = grow(out_k, cap), grow(out_m, cap), grow(out_lam, cap)
             out_k[count], out_m[count], out_lam[count] = k, m, length_ratio * far
             count += 1
     return out_k[:count].copy(), out_m[:count].copy(), out_lam[:count].copy()
-
-
-@numba.njit(cache=True)
-def _grow(a: np.ndarray, cap: int) -> np.ndarray:
-    out = np.empty(cap, a.dtype)
-    out[: len(a)] = a
-    return out
 
 
 @numba.njit(cache=True)
