@@ -103,7 +103,7 @@ def test_other_version_is_refused(line_map, tmp_path):
     old = tmp_path / "old.npz"
     _rewrite_metadata(path, old, format_version=FORMAT_VERSION + 1)
     with pytest.raises(
-        FileFormatError, match=rf"old\.npz.*version {FORMAT_VERSION + 1}.*supported: 1, {FORMAT_VERSION}"
+        FileFormatError, match=rf"old\.npz.*version {FORMAT_VERSION + 1}.*supported: 1, 2, {FORMAT_VERSION}"
     ):
         LineMap.load(old)
 

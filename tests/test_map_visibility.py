@@ -218,3 +218,69 @@ def test_raster_mesh_is_a_plane_patch():
     assert np.allclose(surfaces.world_vertices()[:, 2], 5.0)
     with pytest.raises(InvalidInputError):
         make_surfaces(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+
+
+def sampled_cloud(faces, spacing, offset):
+    """Returns (P, 3) points on a grid of ``spacing`` over each rectangle of ``faces``, moved by ``offset``."""
+    points = []
+    for f in faces:
+        c = np.asarray(f, float)
+        e1, e2 = c[1] - c[0], c[3] - c[0]
+        a = np.arange(0.0, 1.0 + 1e-9, spacing / np.linalg.norm(e1))
+        b = np.arange(0.0, 1.0 + 1e-9, spacing / np.linalg.norm(e2))
+        points.append((c[0] + a[:, None, None] * e1 + b[None, :, None] * e2).reshape(-1, 3))
+    return np.concatenate(points) + offset
+
+
+@pytest.fixture(scope="module")
+def built_far_away():
+    """A map built from a cloud of the scene far from the origin (georeferenced coordinates are)."""
+    _, faces = scene()
+    offset = np.array([651_000.0, 5_420_000.0, 312.0])
+    cloud = sampled_cloud(faces, 0.05, offset)
+    return LineMap.build(cloud), cloud, faces, offset
+
+
+def test_built_surfaces_lie_on_the_cloud(built_far_away):
+    """The mesh of a built map is in the map frame, on the cloud's planes, wherever the cloud lies."""
+    from scipy.spatial import cKDTree
+
+    line_map, cloud, _, _ = built_far_away
+    assert line_map.surfaces is not None and len(line_map.surfaces) > 0
+    v = line_map.surfaces.world_vertices()[line_map.surfaces.triangles].mean(axis=1)
+    distance, _ = cKDTree(cloud).query(v)
+    assert np.median(distance) < 0.1 and distance.max() < 0.5
+
+
+def test_built_surfaces_hide_what_is_behind_them(built_far_away):
+    """From in front of the box, the wall behind it is hidden; the wall beside it is not."""
+    line_map, _, _, offset = built_far_away
+    pose = look_at(offset + np.array([2.0, 0.0, 0.75]), offset + np.array([10.0, 0.0, 0.75]))
+    behind = np.array([10.0, 0.0, 0.75]) + offset  # on the wall, straight behind the box
+    beside = np.array([10.0, 3.5, 0.75]) + offset
+    vis = line_map.visibility()
+    seen = vis._unoccluded(np.stack([behind, beside]), -pose[:3, :3].T @ pose[:3, 3])
+    assert not seen[0] and seen[1]
+
+
+def test_version_2_maps_built_from_clouds_load_without_their_misplaced_surfaces(built_far_away, tmp_path):
+    import json
+    import zipfile
+    from io import BytesIO
+
+    line_map, *_ = built_far_away
+    path, old = tmp_path / "map.npz", tmp_path / "v2.npz"
+    line_map.save(path)
+    with zipfile.ZipFile(path) as zin, zipfile.ZipFile(old, "w") as zout:
+        for item in zin.infolist():
+            data = zin.read(item.filename)
+            if item.filename == "metadata.npy":
+                meta = json.loads(str(np.load(BytesIO(data)))) | {"format_version": 2}
+                buffer = BytesIO()
+                np.save(buffer, np.array(json.dumps(meta)))
+                data = buffer.getvalue()
+            zout.writestr(item, data)
+    assert LineMap.load(path).surfaces is not None
+    loaded = LineMap.load(old)
+    assert loaded.surfaces is None and len(loaded) == len(line_map)
+    assert "misplaced" in loaded.info()["surfaces"]["note"]

@@ -21,7 +21,7 @@ from .collinear import along
 from .lines3d import check_points, lines_and_surfaces
 from .planes import segment_planes, voxel_downsample
 from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
-from .surfaces import Surfaces, concat_surfaces, empty_surfaces
+from .surfaces import Surfaces, empty_surfaces, shift_surfaces
 
 logger = logging.getLogger(__name__)
 
@@ -88,7 +88,8 @@ def extract_map(
         surfaces = empty_surfaces()
     reason = "" if len(segments) else _why_empty(len(planes.counts), lines_config)
     logger.info("%s cloud: %d segments (%s)", profile.kind, len(segments), kinds.kind_counts(kind))
-    surfaces = concat_surfaces([surfaces], offset) if len(surfaces) else empty_surfaces()
+    # the mesh was made in the local frame: the map frame is local + offset
+    surfaces = shift_surfaces(surfaces, offset) if len(surfaces) else empty_surfaces()
     areas = planes.counts * planes.spacing_m**2
     return MapContent(
         segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas

@@ -5,7 +5,9 @@ Built once from a cloud (``LineMap.build``) and saved as one ``.npz`` file whose
 JSON (format version, units, frame, the cloud's profile, extraction parameters, ...). The tile index is a
 uniform grid over the two largest extents of the map (``tiles``); a segment is listed in every tile it
 passes through. Format version 2 added ``kinds`` and the surface mesh; version-1 files still load (kinds
-unknown, no surfaces: visibility is the frustum test only).
+unknown, no surfaces: visibility is the frustum test only). Version 3 changed nothing in the layout: a
+version-2 map built from a cloud had its surfaces in the cloud's local frame (shifted by the cloud's
+lowest corner), so such a file loads without its surfaces, and says so (rebuild it for occlusion).
 """
 
 from __future__ import annotations
@@ -40,8 +42,8 @@ __all__ = ["FORMAT_VERSION", "TILE_KEY_SPAN", "LineMap", "check_map_file"]
 
 logger = logging.getLogger(__name__)
 
-FORMAT_VERSION = 2
-SUPPORTED_VERSIONS = (1, 2)
+FORMAT_VERSION = 3
+SUPPORTED_VERSIONS = (1, 2, 3)
 _ARRAYS = ("segments", "directions", "labels", "support", "tile_keys", "tile_ptr", "tile_members")
 _ARRAYS_V2 = ("kinds", "surface_vertices", "surface_triangles", "surface_origin")
 
@@ -178,7 +180,7 @@ class LineMap:
     # ------------------------------------------------------------------------------------ files
 
     def save(self, path: str | os.PathLike) -> None:
-        """Writes the map to one .npz file (format version 2), atomically."""
+        """Writes the map to one .npz file (format version 3), atomically."""
         from ..io import write_bytes_atomic
 
         buffer = _bytes_io.BytesIO()
@@ -235,6 +237,13 @@ class LineMap:
             surfaces = Surfaces(
                 mesh[0].astype(np.float32), mesh[1].astype(np.int32), mesh[2].astype(np.float64)
             )
+            if version == 2 and metadata.get("extraction") is not None and len(surfaces):
+                logger.warning(
+                    "%s: a format version 2 map built from a cloud holds misplaced surfaces: loaded without "
+                    "them (visibility is the frustum test only); rebuild the map for occlusion",
+                    path,
+                )
+                surfaces = None
         line_map = cls(arrays["segments"].astype(np.float64), clusters, metadata, index, kinds, surfaces)
         logger.info("%s: %d segments, %d clusters", path, len(line_map), len(clusters))
         return line_map
@@ -342,6 +351,12 @@ class LineMap:
             surfaces: dict[str, Any] = {"triangles": len(self.surfaces), "area_m2": self.surfaces.area_m2()}
         elif self.metadata.get("format_version") == 1:
             surfaces = {"triangles": 0, "note": "format version 1 map: no surfaces (frustum-only visibility)"}
+        elif self.metadata.get("format_version") == 2 and self.metadata.get("extraction") is not None:
+            surfaces = {
+                "triangles": 0,
+                "note": "format version 2 map: its surfaces were misplaced and are left out (frustum-only "
+                "visibility); rebuild it from the cloud",
+            }
         else:
             surfaces = {"triangles": 0, "note": "no surfaces (frustum-only visibility)"}
         return meta | {

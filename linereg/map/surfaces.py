@@ -62,6 +62,12 @@ def make_surfaces(vertices: object, triangles: object, origin: object = None) ->
     return Surfaces(v.astype(np.float32), t.astype(np.int32), base)
 
 
+def shift_surfaces(surfaces: Surfaces, offset: np.ndarray) -> Surfaces:
+    """Returns the mesh moved by (3,) ``offset``: a mesh of a local frame placed in the map frame."""
+    origin = surfaces.origin + np.asarray(offset, dtype=np.float64).reshape(3)
+    return Surfaces(surfaces.vertices, surfaces.triangles, origin)
+
+
 def concat_surfaces(parts: list[Surfaces], origin: np.ndarray) -> Surfaces:
     """Returns one mesh of several, its vertices relative to (3,) ``origin``."""
     parts = [p for p in parts if len(p)]
