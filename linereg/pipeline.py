@@ -166,7 +166,7 @@ def decide(
     best = refined[0]
     rivals = [(r.cam_from_world, r.score.value) for r in refined[1:]]
     rivals += [(f.cam_from_world, f.score.value) for f in found]
-    rivals = [(T, s) for T, s in rivals if _differs(T, best.cam_from_world, lines3d, dc)]
+    rivals = [(T, s) for T, s in rivals if differs(T, best.cam_from_world, lines3d, dc)]
     rivals.append(turned_rival(best.cam_from_world, image, lines3d, camera, config, view.visible))
     rivals.sort(key=lambda p: -p[1])
     alternatives = _distinct(rivals, _first, lines3d, dc)[:8]
@@ -252,7 +252,7 @@ def _distinct(
     """Returns the items (best first) whose ``pose(item)`` differs from that of every better one kept."""
     kept: list[_Item] = []
     for item in items:
-        if all(_differs(pose(item), pose(k), lines3d, dc) for k in kept):
+        if all(differs(pose(item), pose(k), lines3d, dc) for k in kept):
             kept.append(item)
     return kept
 
@@ -265,7 +265,7 @@ def _first(pair: tuple[np.ndarray, float]) -> np.ndarray:
     return pair[0]
 
 
-def _differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig) -> bool:
+def differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig) -> bool:
     """Returns True if two cam_from_world poses are distinct answers: rotations more than
     ``distinct_angle_deg`` apart, or camera centres farther apart than ``distinct_fraction`` of the median
     depth of the map seen from ``b``."""

@@ -9,7 +9,11 @@ pose from the graph (``success=False``, reason "from neighbours ..."); a relocal
 prediction (a ``Prior``), or globally after ``global_after_frames`` lost frames without odometry. The graph
 is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
 A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
-graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...".
+graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
+guess (a prediction without odometry, or after a lost frame) must also pass the global decision's turn test
+(``pipeline.turned_rival``). A global relocalization (no prior) starts a track that is posed but not claimed
+("unconfirmed ...") until an independent global relocalization of a later frame lands on it
+(``confirm_global``): one frame's global answer can be a repeated structure's twin.
 ``event`` says what the last step did: initialized, tracked, relocalized, predicted, lost.
 """
 
@@ -25,7 +29,7 @@ import numpy as np
 
 from .camera import Camera
 from .errors import InvalidInputError
-from .geometry import camera_center
+from .geometry import camera_center, rotation_error_deg
 from .graph import (
     LineFit,
     check_relative_pose,
@@ -42,9 +46,10 @@ from .graph import (
     to_pose3,
 )
 from .map.linemap import LineMap
+from .pipeline import differs, turned_rival
 from .registration import Registration
 from .score import ImageLines, image_lines
-from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize
+from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize, visible_mask
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +77,13 @@ class TrackingConfig:
     # motion's and the fix's own) is within this chi-square(6) quantile (0: no gate). A wrong basin (a
     # window period off) lies many sigmas from the prediction; a doubted fix still enters the graph.
     gate_probability: float = 0.999
+    # a global relocalization (no prior: the first frame without ``start_at``, or after
+    # ``global_after_frames`` lost frames without odometry) decides on one frame, and on repeated structure
+    # (the courtyard's 180-degree twin, a facade one bay over) a wrong pose can win it clearly. Its track is
+    # posed but not claimed until a global relocalization of a later frame (every ``relocalize_every``
+    # tracked frames), independent of the track, lands on it (``pipeline.differs`` says no); one landing
+    # elsewhere replaces the track, unconfirmed too. False: a global relocalization is claimed at once.
+    confirm_global: bool = True
     relinearize_threshold: float = 0.01
 
 
@@ -131,6 +143,7 @@ class Tracker:
         self._dt: float | None = None
         self._lost = 0
         self._explained: list[float] = []  # explained shares of the last fixes
+        self._unconfirmed: int | None = None  # frames since an unconfirmed global relocalization, or None
 
     def start_at(
         self, cam_from_world: np.ndarray, sigma_rot_deg: float = 1.0, sigma_pos_m: float = 0.05
@@ -138,6 +151,7 @@ class Tracker:
         """Starts (or restarts) tracking from a known (4, 4) pose with the given uncertainty."""
         pose = check_relative_pose(cam_from_world, "cam_from_world")
         self._anchor(pose, np.diag([np.radians(sigma_rot_deg) ** 2] * 3 + [sigma_pos_m**2] * 3))
+        self._unconfirmed = None
         self.event = "initialized"
 
     @property
@@ -181,30 +195,67 @@ class Tracker:
             radius = min(cfg.relocalize_radius_m * (1 + self._lost), cfg.max_relocalize_radius_m)
             # without odometry the motion is a guess: standing still competes with constant velocity
             starts = [predicted] if relative is not None else [predicted, self._pose]
-            tracked = self._track(image, starts, radius)
+            # a prediction without odometry, or after lost frames, is a guess: its fix is a local search
+            tracked = self._track(image, starts, radius, guessed=relative is None or self._lost > 0)
             if tracked.success:
                 self.event = "tracked"
                 doubt = self._doubt(tracked, predicted, step, cov)
                 added = self._add(image, tracked, step, cov)
+                doubt = self._confirm(lines, image, added) or doubt
                 return added if not doubt else replace(added, success=False, reason=doubt)
         self._lost += 1
         if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % cfg.relocalize_every == 0:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
-            start = time.perf_counter()
-            found = relocalize(lines, self.line_map, self._cam, near, radius, cfg)
-            found = replace(found, timings={**found.timings, "relocalize": time.perf_counter() - start})
+            found = self._relocalize(lines, near, radius)
             if found.success:
                 self.event = "initialized" if self._pose is None else "relocalized"
                 previous, consecutive = self._pose, self._lost == 1
-                self._start(image, found)
+                self._start(image, found, independent=near is None)
                 if previous is not None and consecutive:  # the motion since the last frame is known
                     self._velocity = relative_pose(previous, found.cam_from_world)
+                if self._unconfirmed is not None:
+                    return replace(found, success=False, reason=self._unconfirmed_reason())
                 return found
         return self._coast(tracked, predicted, step, cov)
 
-    def _track(self, image: ImageLines, starts: list[np.ndarray], radius: float) -> Registration:
+    def _relocalize(self, lines: np.ndarray, near: np.ndarray | None, radius: float) -> Registration:
+        """Returns the Registration of (N, 4) undistorted segments, registered near ``near`` or globally."""
+        start = time.perf_counter()
+        found = relocalize(lines, self.line_map, self._cam, near, radius, self.config.sequence)
+        return replace(found, timings={**found.timings, "relocalize": time.perf_counter() - start})
+
+    def _confirm(self, lines: np.ndarray, image: ImageLines, added: Registration) -> str:
+        """Returns why a tracked frame is not claimed because its track is unconfirmed ("" when it is
+        confirmed, now or before): every ``relocalize_every`` frames of an unconfirmed track, the frame is
+        also relocalized globally; a pose the decision calls the same answer as the track's confirms it, a
+        distinct one replaces the track (unconfirmed: one frame's answer against another's)."""
+        if self._unconfirmed is None:
+            return ""
+        self._unconfirmed += 1
+        cfg = self.config.sequence
+        if self._unconfirmed % cfg.relocalize_every == 0 and len(lines) >= cfg.register.min_lines2d:
+            found = self._relocalize(lines, None, cfg.max_relocalize_radius_m)
+            if found.success:
+                T = added.cam_from_world
+                if not differs(found.cam_from_world, T, self.line_map.segments, cfg.register.decide):
+                    self._unconfirmed = None
+                    return ""
+                log.info("tracking: a global relocalization contradicts the unconfirmed track; restarting")
+                self._start(image, found, independent=True)
+        return self._unconfirmed_reason()
+
+    def _unconfirmed_reason(self) -> str:
+        return (
+            f"unconfirmed: relocalized globally {self._unconfirmed} frame(s) ago; not claimed until a global "
+            "relocalization of a later frame lands on the same track"
+        )
+
+    def _track(
+        self, image: ImageLines, starts: list[np.ndarray], radius: float, guessed: bool
+    ) -> Registration:
         """Returns the best-scoring refinement from the start poses; a fix only if it also explains at
-        least ``min_explained_ratio`` of what the recent fixes explained (a wrong basin explains less)."""
+        least ``min_explained_ratio`` of what the recent fixes explained (a wrong basin explains less) and,
+        refined from a ``guessed`` prediction, passes the global decision's turn test."""
         cfg = self.config
         tried = [refine_from(image, self.line_map, self._cam, T, radius, cfg.sequence) for T in starts]
         best = max(tried, key=lambda r: (r.success, r.score))
@@ -213,9 +264,28 @@ class Tracker:
             if best.explained_fraction < cfg.min_explained_ratio * usual:
                 reason = f"tracking: explains {100 * best.explained_fraction:.0f} % of the lines, the recent frames {100 * usual:.0f} %"
                 return replace(best, success=False, reason=reason)
+        if best.success and guessed:
+            best = self._turn_test(image, best)
         if best.success:
             self._explained = [*self._explained[-4:], best.explained_fraction]
         return best
+
+    def _turn_test(self, image: ImageLines, fix: Registration) -> Registration:
+        """Returns the fix, or no fix (``success=False``) when the fix turned beyond the decision's
+        ``distinct_angle_deg`` scores above ``(1 - margin)`` of it (``pipeline.turned_rival``): where the
+        image's clutter lets a displaced copy of the map explain nearly as much, the alignment is chance.
+        Run on fixes from a guessed prediction only (no odometry, or frames lost; 7-9 ms): a frame tracked
+        by odometry from its fixed predecessor has the innovation gate's evidence besides its own lines."""
+        rc = self.config.sequence.register
+        centre = camera_center(fix.cam_from_world)
+        visible = visible_mask(self.line_map, centre, self.config.sequence.relocalize_radius_m)
+        T, value = turned_rival(fix.cam_from_world, image, self.line_map.segments, self._cam, rc, visible)
+        if value < (1.0 - rc.decide.margin) * fix.score:
+            return fix
+        turn = rotation_error_deg(T[:3, :3], fix.cam_from_world[:3, :3])
+        share = 100 * value / fix.score if fix.score > 0 else float("inf")
+        reason = f"tracking: ambiguous: the fix turned {turn:.0f} deg scores {share:.0f} % of it"
+        return replace(fix, success=False, reason=reason)
 
     def _doubt(
         self, tracked: Registration, predicted: np.ndarray, step: np.ndarray | None, cov: np.ndarray | None
@@ -261,10 +331,14 @@ class Tracker:
         cov = np.diag([np.radians(cfg.velocity_sigma_rot_deg) ** 2] * 3 + [cfg.velocity_sigma_pos_m**2] * 3)
         return predict(self._pose, step), step, cov * (1 + self._lost) ** 2
 
-    def _start(self, image: ImageLines, found: Registration) -> None:
-        """Starts a new graph at a relocalized pose: a prior with its covariance and its line factor."""
+    def _start(self, image: ImageLines, found: Registration, independent: bool) -> None:
+        """Starts a new graph at a relocalized pose: a prior with its covariance and its line factor. A
+        global (``independent``) relocalization starts an unconfirmed track (``confirm_global``); one near
+        the prediction keeps the track's standing."""
         cov = found.covariance if np.isfinite(found.covariance).all() else np.diag([1e-4] * 3 + [1e-2] * 3)
         self._anchor(found.cam_from_world, cov)
+        if independent and self.config.confirm_global:
+            self._unconfirmed = 0
 
     def _anchor(self, cam_from_world: np.ndarray, covariance: np.ndarray) -> None:
         """Starts a new graph: a prior at a (4, 4) pose with its (6, 6) covariance."""

@@ -90,7 +90,8 @@ def test_linereg_serve_cli_serves_a_saved_map(served, tmp_path):
 
 
 def test_tracking_session_over_zenoh_survives_its_worker(tmp_path):
-    """The real Tracker in a worker: a global start, tracked frames, bad frames refused, a killed worker."""
+    """The real Tracker in a worker: a global start (posed, not claimed until a later global relocalization
+    confirms it), tracked frames, bad frames refused, a killed worker."""
     import os
     import signal
 
@@ -112,7 +113,9 @@ def test_tracking_session_over_zenoh_survives_its_worker(tmp_path):
                 odometry = relative_pose(truth[k - 1], truth[k]) if k else None
                 reg = session.step(frames[k], kw.pop("relative_pose", odometry), timeout=60.0, **kw)
                 rot_deg, pos_m, _ = pose_errors(reg.cam_from_world, truth[k])
-                assert reg.success and rot_deg < 0.1 and pos_m < 0.01, (k, reg.reason, rot_deg, pos_m)
+                assert rot_deg < 0.1 and pos_m < 0.01, (k, reg.reason, rot_deg, pos_m)
+                # a global start is claimed only once a global relocalization 5 frames on agrees with it
+                assert not reg.success and reg.reason.startswith("unconfirmed"), (k, reg.reason)
                 return session.event
 
             assert [step(k, timestamp=0.1 * k) for k in range(4)] == ["initialized"] + ["tracked"] * 3
