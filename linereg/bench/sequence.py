@@ -174,7 +174,7 @@ def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str
     rows["smoothed"]["seconds_per_frame"] = alone_s + detect_s + graph_s
     for name, odometry in (("tracking", True), ("tracking-cv", False)):
         results, steps, events = _track(p, odometry)
-        rows[name] = _row_of(results, truth, args) | _timing(steps, events, p)
+        rows[name] = _row_of(results, truth, args) | _timing(steps, events, results, p)
         print(f"  {name}: {json.dumps(rows[name]['events'])}", flush=True)
     rows["tracking"] |= _segment_steps(p, lines)
     if args.global_every:
@@ -235,23 +235,27 @@ def _track(p: dict[str, Any], odometry: bool) -> tuple[list, np.ndarray, list[st
     return results, np.array(steps), events
 
 
-def _timing(steps: np.ndarray, events: list[str], p: dict[str, Any]) -> dict[str, Any]:
+def _timing(steps: np.ndarray, events: list[str], results: list, p: dict[str, Any]) -> dict[str, Any]:
     """Returns the median tracked step (image in), relocalization step times and the recovery after the
-    blackout (sequence seconds from its end to the first fix)."""
+    longest blackout: sequence seconds from its end to the first fix (tracked or relocalized, claimed or
+    not: a global relocalization waits for confirmation) and to the first claimed frame."""
     ev = np.array(events)
     tracked = ev == "tracked"
     blank = p["blank"]
-    recovery = None
+    recovery = claimed = None
     ends = np.flatnonzero(blank[:-1] & ~blank[1:]) + 1
     if len(ends):
         end = ends[np.argmax([_run_length(blank, int(e)) for e in ends])]
         fixed = np.flatnonzero(np.isin(ev[end:], ("tracked", "relocalized", "initialized")))
         recovery = float(p["times"][end + fixed[0]] - p["times"][end]) if len(fixed) else None
+        success = np.flatnonzero([r.success for r in results[end:]])
+        claimed = float(p["times"][end + success[0]] - p["times"][end]) if len(success) else None
     return {
         "step_ms_image_median": float(np.median(steps[tracked]) * 1e3) if tracked.any() else None,
         "relocalize_s": [round(float(s), 2) for s in steps[ev == "relocalized"]],
         "events": {e: int((ev == e).sum()) for e in sorted(set(events))},
         "recovery_after_blackout_s": recovery,
+        "claimed_after_blackout_s": claimed,
     }
 
 
