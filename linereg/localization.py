@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 
 import numpy as np
 
@@ -63,13 +64,37 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
             segments = line_map.segments
             points = map_points(segments, config.points, map_gap_m(segments, config.points))
             signatures = map_signatures(points, line_map.clusters.labels, line_map.clusters.directions)
-            cached = (config.points, MapView(segments, line_map.clusters, points, signatures))
+            parts = line_map.visible_parts if _has_surfaces(line_map) else None
+            cached = (config.points, MapView(segments, line_map.clusters, points, signatures, parts=parts))
             line_map.cache["view"] = cached
         return cached[1]
     segments = line_map.segments[index]
     clusters = subset_clusters(line_map.clusters, index, segment_lengths(segments))
     points = map_points(segments, config.points, map_gap_m(line_map.segments, config.points))
-    return MapView(segments, clusters, points, map_signatures(points, clusters.labels, clusters.directions))
+    signatures = map_signatures(points, clusters.labels, clusters.directions)
+    return MapView(segments, clusters, points, signatures, parts=_subset_parts(line_map, index))
+
+
+def _has_surfaces(line_map: LineMap) -> bool:
+    return line_map.surfaces is not None and len(line_map.surfaces) > 0
+
+
+def _subset_parts(
+    line_map: LineMap, index: np.ndarray
+) -> Callable[[Camera, np.ndarray], tuple[np.ndarray, np.ndarray]] | None:
+    """Returns the occlusion test of the map's rows ``index``, naming the rows of the subset (None: the map
+    has no surfaces)."""
+    if not _has_surfaces(line_map):
+        return None
+    index = np.asarray(index, dtype=np.int64)
+    local = np.full(len(line_map.segments), -1, dtype=np.int64)
+    local[index] = np.arange(len(index))
+
+    def parts(camera: Camera, cam_from_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        pieces, rows = line_map.visible_parts(camera, cam_from_world, index)
+        return pieces, local[rows]
+
+    return parts
 
 
 def _localize_undistorted(

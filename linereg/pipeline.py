@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TypeVar
 
 import numpy as np
 
 from .camera import Camera
-from .config import DecideConfig, RegisterConfig
+from .config import DecideConfig, RegisterConfig, ScoreConfig
 from .directions import DirectionClusters
 from .errors import InvalidInputError
 from .geometry import camera_center, rotation_error_deg, rotation_from_vector
@@ -28,7 +28,7 @@ from .priors import Prior, admits, search_region
 from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
 from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
-from .score import ImageLines, image_lines, project_clipped, shifted_values
+from .score import ImageLines, Score, image_lines, project_clipped, score_pose, shifted_values
 from .search import Found, MapSignatures, map_signatures, search
 from .timing import StageTimer
 from .vanishing import vanishing_directions
@@ -72,13 +72,16 @@ def register(
 @dataclass(frozen=True)
 class MapView:
     """The part of a map a query sees: (M, 6) segments, their clusters, corner points and signatures, and
-    (M,) bool ``visible`` (None: no surfaces to hide anything)."""
+    (M,) bool ``visible`` (None: no surfaces to hide anything); ``parts``: the map's occlusion test, (camera,
+    cam_from_world) -> ((K, 6) visible pieces of the segments, (K,) the row of each), None without
+    surfaces (``LineMap.visible_parts``)."""
 
     segments: np.ndarray
     clusters: DirectionClusters
     points: Points
     signatures: MapSignatures
     visible: np.ndarray | None = None
+    parts: Callable[[Camera, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
 
 
 def register_undistorted(
@@ -162,12 +165,22 @@ def decide(
     have visited."""
     dc = config.decide
     lines3d = view.segments
-    refined = sorted(refined, key=lambda r: -r.score.value)
-    best = refined[0]
-    rivals = [(r.cam_from_world, r.score.value) for r in refined[1:]]
-    rivals += [(f.cam_from_world, f.score.value) for f in found]
-    rivals = [(T, s) for T, s in rivals if differs(T, best.cam_from_world, lines3d, dc)]
-    rivals.append(turned_rival(best.cam_from_world, image, lines3d, camera, config, view.visible))
+    with timer("decide"):
+        # the contenders and their rivals scored with what the map's surfaces hide from each: a pose behind a
+        # wall, explaining the image with lines it could not see, loses them (the search scores without)
+        seen = [view_score(view, image, camera, r.cam_from_world, config.score) for r in refined]
+        order = sorted(range(len(refined)), key=lambda k: -seen[k][0].value)
+        best = replace(refined[order[0]], score=seen[order[0]][0])
+        rivals = [(refined[k].cam_from_world, seen[k][0].value) for k in order[1:]]
+        rivals += [
+            (f.cam_from_world, view_score(view, image, camera, f.cam_from_world, config.score)[0].value)
+            for f in found
+            # a pose's score never exceeds the image length it explains: one that cannot come near the best
+            # is no rival, seen or hidden
+            if f.score.explained_length >= (1.0 - dc.margin) * best.score.value
+        ]
+        rivals = [(T, s) for T, s in rivals if differs(T, best.cam_from_world, lines3d, dc)]
+        rivals.append(turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config))
     rivals.sort(key=lambda p: -p[1])
     alternatives = _distinct(rivals, _first, lines3d, dc)[:8]
     runner_up = max((s for _, s in alternatives), default=0.0)
@@ -201,6 +214,21 @@ def decide(
         alternative_scores=np.array([s for _, s in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
+
+
+def view_score(
+    view: MapView, image: ImageLines, camera: Camera, cam_from_world: np.ndarray, config: ScoreConfig
+) -> tuple[Score, np.ndarray]:
+    """Returns (the Score of a pose, its pairs naming rows of ``view.segments``; the (K, 6) map segments
+    it sees) with occlusion by the map's surfaces where the view has them (``view.parts``), else with
+    ``view.visible``."""
+    if view.parts is None:
+        seen = view.segments if view.visible is None else view.segments[view.visible]
+        return score_pose(image, view.segments, camera, cam_from_world, config, view.visible), seen
+    parts, rows = view.parts(camera, cam_from_world)
+    score = score_pose(image, parts, camera, cam_from_world, config)
+    pairs = np.c_[score.pairs[:, 0], rows[score.pairs[:, 1]]] if len(score.pairs) else score.pairs
+    return replace(score, pairs=pairs.astype(np.int64).reshape(-1, 2)), parts
 
 
 def turned_rival(

@@ -67,3 +67,46 @@ def test_a_periodic_wall_is_never_a_success(camera):
     lines2d, _ = project_clipped(lines3d, camera, truth, 0.05)
     reg = linereg.register(lines2d, lines3d, camera)
     assert not reg.success and reg.reason
+
+
+def facade_copies() -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Returns ((M, 6) segments, (vertices, triangles) surfaces): one facade pattern (lines of an uneven
+    grid, window corners, ground lines leading to it) on a wall at x = 20 and the same pattern 20 m
+    along it; a solid wall at x = 10 stands in front of the copy only, and the facade wall is 1 m thick."""
+    rng = np.random.default_rng(0)
+    ys = np.cumsum(rng.uniform(0.6, 1.6, 8)) - 5
+    zs = np.cumsum(rng.uniform(0.4, 1.0, 5))
+    segs = [[20, y, zs[0], 20, y, zs[-1]] for y in ys] + [[20, ys[0], z, 20, ys[-1], z] for z in zs]
+    for k in range(6):
+        y, z = ys[k] + 0.15, zs[k % 4] + 0.1
+        segs += [[20, y, z, 20, y + 0.3, z], [20, y, z, 20, y, z + 0.2]]
+    segs += [[8, y, 0, 20, y, 0] for y in ys[::2]] + [[x, ys[0], 0, x, ys[-1], 0] for x in (9.0, 12.5, 17.0)]
+    pattern = np.array(segs, float)
+    copy = pattern + np.array([0, 20.0, 0, 0, 20.0, 0])
+    quads = [
+        [(10, 10, -1), (10, 30, -1), (10, 30, 6), (10, 10, 6)],
+        [(21, -10, -1), (21, 30, -1), (21, 30, 6), (21, -10, 6)],
+    ]
+    vertices = np.concatenate([np.asarray(q, float) for q in quads])
+    triangles = np.concatenate([np.array([[0, 1, 2], [0, 2, 3]]) + 4 * k for k in range(len(quads))])
+    return np.r_[pattern, copy], (vertices, triangles)
+
+
+def test_the_decision_sees_what_the_surfaces_hide():
+    """Two copies of a facade explain a photo equally well, but one is behind a wall from where it would
+    have to be seen: with the map's surfaces the decision scores what each pose sees, and answers; without
+    them the copies are a tie and the answer is ambiguous."""
+    segments, surfaces = facade_copies()
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    truth = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    lines2d, _ = project_clipped(segments, camera, truth, 0.05, None)
+    seen = linereg.localize_segments(
+        lines2d, linereg.LineMap.from_segments(segments, surfaces=surfaces), camera
+    )
+    assert seen.success, seen.reason
+    assert rotation_error_deg(seen.cam_from_world[:3, :3], truth[:3, :3]) < 1.0
+    centre = -seen.cam_from_world[:3, :3].T @ seen.cam_from_world[:3, 3]
+    assert np.linalg.norm(centre - np.array([2.0, 0.0, 1.5])) < 0.3
+    assert seen.matches[:, 1].max() < len(segments)  # matches name the map's segments, not visible pieces
+    bare = linereg.localize_segments(lines2d, linereg.LineMap.from_segments(segments), camera)
+    assert not bare.success and "ambiguous" in bare.reason

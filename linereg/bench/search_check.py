@@ -38,13 +38,15 @@ def check(
     "search" (it does, and the search did not return it).
     """
     from ..config import RegisterConfig
+    from ..pipeline import view_score
     from ..refine import refine_pose
     from ..score import image_lines
 
     config = config or RegisterConfig()
     image = image_lines(lines2d, camera, config.score)
     refined = refine_pose(image, view.segments, camera, truth, config.refine, config.score, view.visible)
-    truth_score = float(refined.score.value)
+    # scored as the decision scores the poses it compares (occlusion by the map's surfaces included)
+    truth_score = float(view_score(view, image, camera, refined.cam_from_world, config.score)[0].value)
     found_score = float(result.score) if result.cam_from_world is not None else -np.inf
     if pose_is_right:
         verdict = "right" if result.success else "refused right"
