@@ -286,6 +286,24 @@ def test_square_splats_lie_in_the_tangent_plane():
     np.testing.assert_allclose(row, truth, atol=2e-3)
 
 
+def test_behind_keeps_a_slanted_plane_level_and_sees_a_nearer_pixel_in_the_footprint():
+    from linereg.color.depth import behind_m
+
+    # a plane whose depth grows 0.2 m per column: each pixel centre holds the plane's depth there
+    cols = np.arange(CAMERA.width, dtype=np.float32)
+    depth = np.broadcast_to(10.0 + 0.2 * (cols - 80.0), (CAMERA.height, CAMERA.width)).copy()
+    u = np.array([40.3, 80.7, 120.0], np.float32)
+    v = np.array([30.2, 60.0, 90.4], np.float32)
+    z = (10.0 + 0.2 * (u - 80.0)).astype(np.float32)
+    slope = np.array([[0.2, 0.0]] * 3, np.float32)
+    radius = np.array([1, 1, 2], np.int64)
+    np.testing.assert_allclose(behind_m(depth, u, v, z, slope, radius), 0.0, atol=1e-4)
+    depth[62, 82] -= 1.0  # a nearer surface 2 px from the second point, 1 px from nothing else
+    behind = behind_m(depth, u, v, z, slope, np.array([1, 2, 2], np.int64))
+    np.testing.assert_allclose(behind, [0.0, 1.0, 0.0], atol=1e-4)
+    assert behind_m(depth, u[:0], v[:0], z[:0], slope[:0], radius[:0]).shape == (0,)
+
+
 def sampled(x0, x1, y0, y1, z, spacing, rng) -> np.ndarray:
     """Returns (P, 3) points scattered at random over [x0, x1] x [y0, y1] at depth z (~1 per spacing^2),
     with 5 mm of range noise: the irregular sampling of a scan."""
@@ -341,3 +359,42 @@ def test_a_script_without_a_main_guard_is_told_why_its_pool_broke(tmp_path):
         )
     assert answers["guarded"].returncode == 0 and "[(0, 2), (1, 3)]" in answers["guarded"].stdout
     assert answers["bare"].returncode != 0 and 'if __name__ == "__main__":' in answers["bare"].stderr
+
+
+def test_a_point_behind_a_thin_pillar_is_never_coloured_by_the_photo_it_hides_from():
+    # a pillar 0.4 m wide (8 px) at 15 m, 1 m before a wall; both sampled at random (~1.5 px apart on
+    # the pillar), so the pillar's outline and its inside have holes between splats
+    rng = np.random.default_rng(5)
+    wall = sampled(-3, 3, -2.5, 2.5, 16.0, 0.06, rng)
+    pillar = sampled(-0.2, 0.2, -2.5, 2.5, 15.0, 0.075, rng)
+    photo = np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8)
+    _, seen = linereg.colorize(np.r_[wall, pillar], [photo], CAMERA, look_from([0, 0, 0])[None])
+    u = CAMERA.fx * wall[:, 0] / wall[:, 2] + CAMERA.cx
+    half = 0.2 * CAMERA.fx / 15.0  # the pillar's half width, px
+    hidden = np.abs(u - CAMERA.cx) < half - 1.0  # rays through the pillar a pixel inside its outline
+    assert hidden.sum() > 300
+    assert (seen[: len(wall)][hidden] == 0).all(), f"{(seen[: len(wall)][hidden] > 0).sum()} coloured through"
+    assert (seen[: len(wall)][np.abs(u - CAMERA.cx) > half + 2.0] > 0).mean() > 0.9
+
+
+def test_a_recess_seen_at_a_slant_is_not_coloured_through_the_wall_edge_before_it():
+    # a facade at 30 m turned 50 degrees about y, the camera on its side, and beyond its edge the
+    # recessed panel of a window 0.1 m deep: the edge hides a strip of the recess ~1 px wide, whose
+    # points lie 0.16 m behind the facade along their rays (a flat test with a pixel of slope let them
+    # through)
+    rng = np.random.default_rng(7)
+    angle = np.deg2rad(-50.0)
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    # facade frame: x along the facade (its edge at 0), z into the wall (the recess at z = 0.1)
+    local = np.r_[sampled(-4.0, 0.0, -2, 2, 0.0, 0.03, rng), sampled(0.0, 3.0, -2, 2, 0.1, 0.03, rng)]
+    points = local @ R.T + [0.0, 0.0, 30.0]
+    photo = np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8)
+    _, seen = linereg.colorize(points, [photo], CAMERA, look_from([0, 0, 0])[None])
+    eye = R.T @ [0.0, 0.0, -30.0]  # the camera in the facade frame
+    crossing = eye[0] + (local[:, 0] - eye[0]) * eye[2] / (eye[2] - local[:, 2])  # ray meets z = 0
+    pixel_m = 30.0 / CAMERA.fx / np.cos(angle)  # a pixel's width on the facade
+    recess = local[:, 2] > 0.05
+    hidden = recess & (crossing < -0.5 * pixel_m)  # behind the facade, half a pixel inside its edge
+    assert hidden.sum() > 100
+    assert (seen[hidden] == 0).all(), f"{(seen[hidden] > 0).sum()} of {hidden.sum()} coloured through"
+    assert (seen[recess & (crossing > 3.0 * pixel_m)] > 0).mean() > 0.9  # the slanted recess sees itself

@@ -20,7 +20,7 @@ import numpy as np
 from ..camera import Camera
 from ..geometry import camera_center
 from .config import ColorizeConfig
-from .depth import depth_at, diameter_px, tolerance_m
+from .depth import behind_m, depth_slope, diameter_px, footprint_radius_px, tolerance_m
 from .project import project
 
 REMAP_COLUMNS = 1024  # cv2.remap takes maps of fewer than 32767 rows: lookups are laid out this wide
@@ -90,10 +90,13 @@ def observe(
     cos = np.nan_to_num(cos, nan=1.0)  # unknown normal (an isolated point): taken as facing the photo
     tan = np.minimum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, 1e-3), vis.max_slope)
     diameter = diameter_px(spacing[pr.index], pr.z, photo.camera, vis)
-    behind = pr.z - depth_at(depth, pr.u, pr.v)
-    keep = np.flatnonzero(
-        (behind <= tolerance_m(pr.z, diameter, tan, photo.camera, vis)) & (cos >= wts.min_cos)
-    )
+    # the point's tangent plane against the depth map over its splat and a silhouette margin
+    normals_cam = np.einsum("nk,jk->nj", normals[pr.index], photo.cam_from_world[:3, :3].astype(np.float32))
+    slope = depth_slope(normals_cam, pr.u, pr.v, pr.z, photo.camera, vis.max_slope)
+    radius = footprint_radius_px(diameter, vis)
+    behind = behind_m(depth, pr.u, pr.v, pr.z, slope, radius)
+    tolerance = tolerance_m(pr.z, diameter, tan, photo.camera, vis)
+    keep = np.flatnonzero((behind <= tolerance) & (cos >= wts.min_cos))
     u, v, cos, distance = pr.u[keep], pr.v[keep], cos[keep], distance[keep]
     weight = cos**wts.angle_power * distance ** (-wts.range_power) * photo.sharpness
     weight *= _border_ramp(u, v, photo.camera, wts.border_px)

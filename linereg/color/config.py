@@ -38,6 +38,15 @@ class VisibilityConfig:
     # the slope term of the tolerance stops at this tan(incidence): a surface seen more grazing than
     # atan(max_slope) hides parts of itself rather than let what lies behind an occluder through
     max_slope: float = 1.5
+    # the depth test covers the point's own splat and at least this many pixels round its pixel: a point
+    # beside an occluder's silhouette is not coloured (its photo colour there mixes both surfaces anyway:
+    # bilinear sampling, optical blur), nor one whose splat overlaps an occluder's (``depth.behind_m``)
+    silhouette_margin_px: int = 1
+    # the depth test allows this many pixels of the surface's slope (``depth.tolerance_m``): a neighbour's
+    # splat is tilted by its own voxel's normal (a few degrees off on a noisy or sparse surface) from
+    # its point, up to half a pixel from the pixel centre the test meets it at; 0 leaves slanted
+    # surfaces at range hiding parts of themselves
+    slope_slack_px: float = 0.5
     # gap closing after the splats (``depth.fill_gaps``): a pixel that meets a nearer surface in at least
     # ``gap_directions`` of 8 directions within ``gap_radius_px`` lies in a hole of that surface (irregular
     # and striped sampling leaves holes up to ~5 px wide); 6 keeps a pixel beside a straight edge (3-5)

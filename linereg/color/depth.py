@@ -7,10 +7,12 @@ points, few) into a pyramid, at level ``L = ceil(log2 d)`` (cells of ``c = 2^L``
 block covers ``[u - c/2, u + c/2]``. ``finish`` spreads every cell over its 2 x 2 block and takes the minimum
 over levels; ``fill_gaps`` then closes the holes irregular sampling leaves. The pixel image has a margin
 round the photo where points just outside it splat too, so an occluder crossing the image border hides
-what lies behind it up to the border. Square splats lie in their
-point's tangent plane (``depth_slope``), so a slanted surface does not hide itself and the depth test's
-tolerance stays small. Every step is a minimum, so buffers of different chunks combine by ``np.minimum``
-before or after ``finish`` alike (chunks may be splatted on different machines).
+what lies behind it up to the border. Square splats lie in their point's tangent plane
+(``depth_slope``), so a slanted surface does not hide itself. The depth test (``behind_m``) evaluates a
+point's own tangent plane at the pixels of its splat and of a silhouette margin round its pixel: a
+nearer surface anywhere there hides it, and the tolerance stays small. Every step of the buffer is a
+minimum, so buffers of different chunks combine by ``np.minimum`` before or after ``finish`` alike
+(chunks may be splatted on different machines).
 """
 
 from __future__ import annotations
@@ -221,22 +223,70 @@ def diameter_px(spacing_m: np.ndarray, z: np.ndarray, camera: Camera, config: Vi
     return (config.splat_scale * focal) * spacing_m / z
 
 
+def footprint_radius_px(diameter: np.ndarray, config: VisibilityConfig) -> np.ndarray:
+    """Returns (n,) int64 the half-width (px) of the square of pixels a point's depth test covers: its own
+    splat (``ceil(d)`` pixels wide, up to ``EXACT_MAX_PX``) and at least ``silhouette_margin_px`` round
+    its pixel."""
+    half = np.ceil((np.minimum(np.ceil(diameter), EXACT_MAX_PX) - 1.0) / 2.0).astype(np.int64)
+    return np.maximum(half, config.silhouette_margin_px)
+
+
+def behind_m(
+    depth: np.ndarray, u: np.ndarray, v: np.ndarray, z: np.ndarray, slope: np.ndarray, radius: np.ndarray
+) -> np.ndarray:
+    """Returns (n,) float32 how far (m) each point's tangent plane lies behind the depth map, at worst over
+    the pixels within ``radius`` (Chebyshev) of the pixel holding it.
+
+    The plane is evaluated at each pixel's centre, ``z + slope . (pixel - (u, v))``, which is what the
+    point's own splat (and its neighbours' on the same surface) wrote there: the point's surface stays
+    level with the map, while a nearer surface anywhere in the footprint (an occluder's silhouette, the
+    rim of a hole between its splats) shows as the point lying behind it. Beyond the image border the
+    map's border pixels stand for what lies there.
+    depth: (H, W) float32; u, v, z: (n,) float32; slope: (n, 2) float32 (``depth_slope``); radius: (n,) int64.
+    """
+    reach = int(radius.max(initial=0))
+    least = int(radius.min(initial=0))
+    padded = np.pad(depth, reach, mode="edge").ravel()
+    stride = depth.shape[1] + 2 * reach
+    col, row = np.floor(u + 0.5), np.floor(v + 0.5)  # float32: the pixel holding each point
+    centre = (row.astype(np.int64) + reach) * stride + col.astype(np.int64) + reach
+    plane = z + slope[:, 0] * (col - u) + slope[:, 1] * (row - v)  # at the centre of that pixel
+    worst = plane - padded[centre]
+    su, sv = np.ascontiguousarray(slope[:, 0]), np.ascontiguousarray(slope[:, 1])
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            ring, offset = max(abs(dy), abs(dx)), dy * stride + dx
+            if ring == 0:
+                continue
+            if ring <= least:  # every point's footprint reaches this pixel
+                np.maximum(
+                    worst,
+                    plane + su * np.float32(dx) + sv * np.float32(dy) - padded[centre + offset],
+                    out=worst,
+                )
+                continue
+            sel = np.flatnonzero(radius >= ring)
+            here = plane[sel] + su[sel] * np.float32(dx) + sv[sel] * np.float32(dy)
+            worst[sel] = np.maximum(worst[sel], here - padded[centre[sel] + offset])
+    return worst
+
+
 def tolerance_m(
     z: np.ndarray, diameter: np.ndarray, tan_incidence: np.ndarray, camera: Camera, config: VisibilityConfig
 ) -> np.ndarray:
-    """Returns (n,) float32 how far (m) a point may lie behind the depth map and still be visible.
+    """Returns (n,) float32 how far (m) a point's tangent plane may lie behind the depth map (``behind_m``)
+    and the point still be visible.
 
-    The floor (and the share of range, 0 by default), plus the depth change on a surface at ``tan_incidence`` to the
-    viewing ray across what the depth map cannot follow: a pixel of rounding for square splats (they are
-    tilted along their tangent plane, ``depth_slope``), 1.5 cells of a flat pyramid block (the nearest
-    splat of the same surface at the point's pixel may come from a neighbour that far away).
+    The floor (and the share of range, 0 by default), plus the depth change on a surface at
+    ``tan_incidence`` to the viewing ray across what the depth map cannot follow. Square splats are
+    tilted along their tangent planes and the test evaluates the point's own plane at each pixel's
+    centre, so only the neighbours' tilts are left: each comes from its own voxel's normal and holds
+    from its point, up to ``slope_slack_px`` from the centre (a flat test at the point's pixel needed a
+    whole pixel, which let points 0.1-0.3 m behind a window reveal or a ledge through). Pyramid blocks
+    are flat: there 1.5 cells of slope count (the nearest splat of the same surface at the point's
+    pixel may come from a neighbour that far away).
     """
     cell = np.exp2(np.ceil(np.log2(np.maximum(diameter, 1.0))))
-    reach_px = np.where(np.ceil(diameter) <= EXACT_MAX_PX, 1.0, 1.5 * cell)
+    reach_px = np.where(np.ceil(diameter) <= EXACT_MAX_PX, config.slope_slack_px, 1.5 * cell)
     footprint_m = reach_px * z / max(camera.fx, camera.fy)
     return config.depth_tol_m + config.depth_tol_rel * z + footprint_m * tan_incidence
-
-
-def depth_at(depth: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:
-    """Returns (n,) float32 the depth map at the pixels holding (u, v)."""
-    return depth[np.floor(v + 0.5).astype(np.int64), np.floor(u + 0.5).astype(np.int64)]
