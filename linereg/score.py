@@ -95,6 +95,18 @@ class Score:
     def explained_length(self) -> float:
         return float(self.explained.sum())
 
+    def one_to_one(self) -> np.ndarray:
+        """Returns (K, 2) int64 ``(i2d, j3d)``: the covering pairs taken longest cover first, each image
+        segment and each map segment in at most one (a greedy assignment). A loose tolerance lets a map
+        line cover several image lines of clutter and the truth's: pose fits on all of them average the
+        pulls, on these the longest agreement wins (docs/measurements.md: the local solve's basin)."""
+        if len(self.pairs) == 0:
+            return np.zeros((0, 2), dtype=np.int64)
+        covered = self.cover[:, 1] - self.cover[:, 0]
+        order = np.argsort(-covered, kind="stable")
+        pairs = np.ascontiguousarray(self.pairs[order], dtype=np.int64)
+        return pairs[_greedy(pairs, int(pairs[:, 0].max()) + 1, int(pairs[:, 1].max()) + 1)]
+
     def matches(self, min_cover: float) -> np.ndarray:
         """Returns (K, 2) int64 ``(i2d, j3d)``: for each image segment the map segment covering most of it,
         if that covers at least ``min_cover`` of its length (the correspondences refinement starts from).
@@ -239,6 +251,21 @@ def clip_to_image(segments: np.ndarray, width: int, height: int) -> tuple[np.nda
 
 
 # ---------------------------------------------------------------------------------------------- kernels
+
+
+@numba.njit(cache=True)
+def _greedy(pairs: np.ndarray, n_image: int, n_map: int) -> np.ndarray:
+    """Returns (P,) bool: the pairs, in the given order, whose image and map segments are both still free."""
+    used_i = np.zeros(n_image, np.bool_)
+    used_j = np.zeros(n_map, np.bool_)
+    keep = np.zeros(len(pairs), np.bool_)
+    for k in range(len(pairs)):
+        i, j = pairs[k, 0], pairs[k, 1]
+        if not used_i[i] and not used_j[j]:
+            used_i[i] = True
+            used_j[j] = True
+            keep[k] = True
+    return keep
 
 
 @numba.njit(cache=True)

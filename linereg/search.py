@@ -479,8 +479,8 @@ def solve_locally(
     within ``size_m``, or None when nothing matches there.
 
     Rounds: the score's covering pairs at a tolerance spanning the uncertainty (the pixels ``size_m`` moves
-    the median matched point), then the pose minimising their endpoint-to-line distances; the tolerance
-    halves each round down to the score's own.
+    the median matched point), one per image and per map segment (``Score.one_to_one``), then the pose
+    minimising their endpoint-to-line distances; the tolerance halves each round down to the score's own.
     """
     pose = cam_from_world
     f = max(camera.fx, camera.fy)
@@ -488,7 +488,7 @@ def solve_locally(
     tolerance += f * np.tan(np.radians(config.rotation_slack_deg))  # the rotation candidate's own error
     for _ in range(config.solve_rounds):
         loose = replace(score_config, distance_px=tolerance, angle_deg=score_config.angle_deg + 2.0)
-        pairs = score_pose(image, lines3d, camera, pose, loose, visible).pairs
+        pairs = score_pose(image, lines3d, camera, pose, loose, visible).one_to_one()
         moved = pose_from_pairs(image.segments, lines3d, camera, pose, pairs)
         if moved is None:
             return None
