@@ -284,3 +284,19 @@ def test_version_2_maps_built_from_clouds_load_without_their_misplaced_surfaces(
     loaded = LineMap.load(old)
     assert loaded.surfaces is None and len(loaded) == len(line_map)
     assert "misplaced" in loaded.info()["surfaces"]["note"]
+
+
+def test_potentially_visible_keeps_what_the_ray_test_of_a_camera_in_the_box_shows():
+    """A line 4 cm behind a wall's surface (a reveal, a mesh a cell off) is seen by the per-camera ray test
+    (its tolerance grows with range); the set for a box holding that camera must not leave it out."""
+    wall = [(10, -2, 0), (10, 2, 0), (10, 2, 3), (10, -2, 3)]
+    segments = np.array([[10.04, 0.5, 0.5, 10.04, 0.5, 2.5], [9.0, -1.0, 0.5, 9.0, -1.0, 2.5]])
+    line_map = LineMap.from_segments(segments, surfaces=quad_triangles(wall))
+    centre = np.array([2.0, 0.0, 1.5])
+    _, rows = line_map.visible_parts(CAMERA, look_at(centre, np.array([10.0, 0.0, 1.5])))
+    assert 0 in rows  # the ray test shows it
+    assert 0 in line_map.potentially_visible(centre - 0.25, centre + 0.25)
+    far_behind = LineMap.from_segments(
+        np.array([[10.5, 0.5, 0.5, 10.5, 0.5, 2.5]]), surfaces=quad_triangles(wall)
+    )  # 0.5 m behind: hidden from everywhere in the box, by both tests
+    assert len(far_behind.potentially_visible(centre - 0.25, centre + 0.25)) == 0

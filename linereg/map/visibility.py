@@ -144,7 +144,8 @@ class Visibility:
         corners = np.stack(np.meshgrid(*zip(lo, hi, strict=True), indexing="ij"), -1).reshape(8, 3)
         polygons, normals = self._occluder_set()
         ends, owner = self._piece_set()
-        margin = self.config.pvs_margin_m
+        cfg = self.config
+        margin = cfg.pvs_margin_m
         open_ = np.ones(len(owner), dtype=bool)
         for poly, n in zip(polygons, normals, strict=True):
             side_box = (corners - poly[0]) @ n
@@ -154,11 +155,14 @@ class Visibility:
             cand = np.flatnonzero(open_)
             e = ends[cand]  # (c, 2, 3)
             side = sign * ((e - poly[0]) @ n)  # (c, 2): the box side is positive
-            cand, e, side = (
-                cand[(side < -margin).all(1)],
-                e[(side < -margin).all(1)],
-                side[(side < -margin).all(1)],
-            )
+            # a piece is hidden only as far behind the occluder as the ray test of one camera would hide
+            # it (``_unoccluded``: its tolerance at the farthest the piece is from the box), else a camera
+            # in the box could see what the set leaves out: the gap along a ray is at least the gap
+            # across the plane
+            far = np.linalg.norm(e[:, :, None, :] - corners[None, None], axis=-1).max(axis=(1, 2))
+            behind = np.maximum(margin, cfg.depth_tolerance_m + cfg.depth_tolerance_fraction * far)
+            hidden = (side < -behind[:, None]).all(1)
+            cand, e, side = cand[hidden], e[hidden], side[hidden]
             if len(cand) == 0:
                 continue
             sb = sign * side_box  # (8,) positive
