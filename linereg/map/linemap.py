@@ -237,7 +237,7 @@ class LineMap:
             surfaces = Surfaces(
                 mesh[0].astype(np.float32), mesh[1].astype(np.int32), mesh[2].astype(np.float64)
             )
-            if version == 2 and metadata.get("extraction") is not None and len(surfaces):
+            if _misplaced_surfaces(metadata) and len(surfaces):
                 logger.warning(
                     "%s: a format version 2 map built from a cloud holds misplaced surfaces: loaded without "
                     "them (visibility is the frustum test only); rebuild the map for occlusion",
@@ -351,7 +351,7 @@ class LineMap:
             surfaces: dict[str, Any] = {"triangles": len(self.surfaces), "area_m2": self.surfaces.area_m2()}
         elif self.metadata.get("format_version") == 1:
             surfaces = {"triangles": 0, "note": "format version 1 map: no surfaces (frustum-only visibility)"}
-        elif self.metadata.get("format_version") == 2 and self.metadata.get("extraction") is not None:
+        elif _misplaced_surfaces(self.metadata):
             surfaces = {
                 "triangles": 0,
                 "note": "format version 2 map: its surfaces were misplaced and are left out (frustum-only "
@@ -396,6 +396,12 @@ def check_map_file(path: str | os.PathLike) -> None:
 
 
 _NPZ_MAGIC = b"PK\x03\x04"  # a map is an .npz: a zip archive
+
+
+def _misplaced_surfaces(metadata: dict[str, Any]) -> bool:
+    """Returns True for a map file whose surfaces ``LineMap.build`` wrote in the cloud's local frame: a
+    format version 2 map built from a cloud (``extraction`` set)."""
+    return metadata.get("format_version") == 2 and metadata.get("extraction") is not None
 
 
 def _no_clusters() -> DirectionClusters:
