@@ -165,3 +165,35 @@ def next_tolerance(residuals: np.ndarray, config: RegisterConfig) -> float:
     sigma = 1.4826 * float(np.median(np.abs(residuals))) if len(residuals) else np.inf
     rc = config.refine
     return float(np.clip(rc.outlier_sigmas * sigma, rc.min_outlier_px, config.score.distance_px))
+
+
+def chi2_quantile(probability: float, dof: int) -> float:
+    """Returns the chi-square quantile (scipy)."""
+    from scipy.stats import chi2
+
+    return float(chi2.ppf(probability, dof))
+
+
+def innovation_distance(
+    predicted: np.ndarray,
+    fixed: np.ndarray,
+    previous_covariance: np.ndarray,
+    step: np.ndarray,
+    step_cov: np.ndarray,
+    fix_covariance: np.ndarray,
+) -> float:
+    """Returns the squared Mahalanobis distance of a fix (4, 4 cam_from_world) from its prediction.
+
+    The prediction is the previous pose moved by ``step`` (cam_prev_from_cam_this); its (6, 6) covariance is
+    the previous pose's marginal carried through the step (gtsam's right-perturbation convention, in the
+    camera frame, rotation first) plus ``step_cov``; the fix's own covariance is added (independent
+    measurements). Non-finite covariances count as zero (an unknown previous pose or fix: the gate uses
+    what is known)."""
+
+    def finite(c: np.ndarray | None) -> np.ndarray:
+        return c if c is not None and c.shape == (6, 6) and np.isfinite(c).all() else np.zeros((6, 6))
+
+    ad = gtsam.Pose3(step).inverse().AdjointMap()
+    covariance = ad @ finite(previous_covariance) @ ad.T + step_cov + finite(fix_covariance)
+    xi = gtsam.Pose3.Logmap(to_pose3(predicted).between(to_pose3(fixed)))
+    return float(xi @ np.linalg.solve(covariance, xi))

@@ -13,7 +13,10 @@ graph but is not claimed: ``success=False``, reason "from neighbours and its lin
 guess (a prediction without odometry, or after a lost frame) must also pass the global decision's turn test
 (``pipeline.turned_rival``). A global relocalization (no prior) starts a track that is posed but not claimed
 ("unconfirmed ...") until an independent global relocalization of a later frame lands on it
-(``confirm_global``): one frame's global answer can be a repeated structure's twin.
+(``confirm_global``): one frame's global answer can be a repeated structure's twin. Frames coasting on
+odometry gather in a window; once odometry no longer holds the window rigid to within the score's resolution,
+the window is turned to where its frames' summed score is best (``align.align_window``) and that rotation
+enters the graph as a measurement of the newest pose (``align.rotation_prior``); the frames stay unclaimed.
 ``event`` says what the last step did: initialized, tracked, relocalized, predicted, lost.
 """
 
@@ -27,15 +30,18 @@ from dataclasses import dataclass, field, replace
 import gtsam
 import numpy as np
 
+from .align import align_window, rotation_prior
 from .camera import Camera
 from .errors import InvalidInputError
 from .geometry import camera_center, rotation_error_deg
 from .graph import (
     LineFit,
     check_relative_pose,
+    chi2_quantile,
     frame_key,
     frame_lines,
     from_pose3,
+    innovation_distance,
     line_fit,
     next_tolerance,
     noise_px,
@@ -85,38 +91,9 @@ class TrackingConfig:
     # elsewhere replaces the track, unconfirmed too. False: a global relocalization is claimed at once.
     confirm_global: bool = True
     relinearize_threshold: float = 0.01
-
-
-def chi2_quantile(probability: float, dof: int) -> float:
-    """Returns the chi-square quantile (scipy)."""
-    from scipy.stats import chi2
-
-    return float(chi2.ppf(probability, dof))
-
-
-def innovation_distance(
-    predicted: np.ndarray,
-    fixed: np.ndarray,
-    previous_covariance: np.ndarray,
-    step: np.ndarray,
-    step_cov: np.ndarray,
-    fix_covariance: np.ndarray,
-) -> float:
-    """Returns the squared Mahalanobis distance of a fix (4, 4 cam_from_world) from its prediction.
-
-    The prediction is the previous pose moved by ``step`` (cam_prev_from_cam_this); its (6, 6) covariance is
-    the previous pose's marginal carried through the step (gtsam's right-perturbation convention, in the
-    camera frame, rotation first) plus ``step_cov``; the fix's own covariance is added (independent
-    measurements). Non-finite covariances count as zero (an unknown previous pose or fix: the gate uses
-    what is known)."""
-
-    def finite(c: np.ndarray | None) -> np.ndarray:
-        return c if c is not None and c.shape == (6, 6) and np.isfinite(c).all() else np.zeros((6, 6))
-
-    ad = gtsam.Pose3(step).inverse().AdjointMap()
-    covariance = ad @ finite(previous_covariance) @ ad.T + step_cov + finite(fix_covariance)
-    xi = gtsam.Pose3.Logmap(to_pose3(predicted).between(to_pose3(fixed)))
-    return float(xi @ np.linalg.solve(covariance, xi))
+    # window alignment of coasting frames (``align``): at most this many of the window's frames are scored
+    # (evenly spread; cost only: a window's frames see much the same); 0: no window alignment
+    align_frames: int = 6
 
 
 class Tracker:
@@ -131,6 +108,7 @@ class Tracker:
         self._cam = camera.undistorted()
         self.event = "none"
         self.frames = 0  # frames stepped
+        self.alignments = 0  # window alignments entered in the graph
         self._reset()
 
     def _reset(self) -> None:
@@ -144,6 +122,11 @@ class Tracker:
         self._lost = 0
         self._explained: list[float] = []  # explained shares of the last fixes
         self._unconfirmed: int | None = None  # frames since an unconfirmed global relocalization, or None
+        self._clear_window()
+
+    def _clear_window(self) -> None:
+        self._window: list[tuple[ImageLines, np.ndarray]] = []  # coasted frames since the last evidence
+        self._window_var = 0.0  # rotation variance per axis (rad^2) odometry added over the window
 
     def start_at(
         self, cam_from_world: np.ndarray, sigma_rot_deg: float = 1.0, sigma_pos_m: float = 0.05
@@ -216,7 +199,8 @@ class Tracker:
                 if self._unconfirmed is not None:
                     return replace(found, success=False, reason=self._unconfirmed_reason())
                 return found
-        return self._coast(tracked, predicted, step, cov)
+        # only odometry holds coasting frames together (a constant-velocity guess does not): a window
+        return self._coast(image if relative is not None else None, tracked, predicted, step, cov)
 
     def _relocalize(self, lines: np.ndarray, near: np.ndarray | None, radius: float) -> Registration:
         """Returns the Registration of (N, 4) undistorted segments, registered near ``near`` or globally."""
@@ -350,6 +334,7 @@ class Tracker:
         values.insert(key, to_pose3(cam_from_world))
         self._update(graph, values)
         self._velocity, self._lost = None, 0
+        self._clear_window()
 
     def _reset_graph(self) -> None:
         params = gtsam.ISAM2Params()
@@ -382,6 +367,7 @@ class Tracker:
         self._update(graph, values)
         assert previous is not None and self._pose is not None
         self._velocity, self._lost = relative_pose(previous, self._pose), 0
+        self._clear_window()
         return replace(tracked, cam_from_world=self._pose, covariance=self._covariance())
 
     def _fit(
@@ -392,12 +378,14 @@ class Tracker:
 
     def _coast(
         self,
+        image: ImageLines | None,
         tracked: Registration,
         predicted: np.ndarray | None,
         step: np.ndarray | None,
         cov: np.ndarray | None,
     ) -> Registration:
-        """Returns the Registration of a lost frame: the graph's prediction when there is one."""
+        """Returns the Registration of a lost frame: the graph's prediction when there is one. ``image``:
+        the frame's lines when odometry moved it (it joins the window of coasting frames), else None."""
         if predicted is None or step is None or cov is None or self._isam is None:
             self.event = "lost"
             return replace(tracked, success=False, reason=f"lost: {tracked.reason}")
@@ -408,6 +396,7 @@ class Tracker:
         graph.add(odometry_factor(self._k, step, cov))
         self._update(graph, values)
         reason = f"{FROM_NEIGHBOURS}: {self._lost} frame(s) predicted since the last fix ({tracked.reason})"
+        reason += self._coasted(image, cov)
         assert self._pose is not None
         return Registration(
             success=False,
@@ -416,6 +405,53 @@ class Tracker:
             covariance=self._covariance(),
             timings=tracked.timings,
         )
+
+    def _coasted(self, image: ImageLines | None, step_cov: np.ndarray) -> str:
+        """Returns what the window alignment did ("" when it did not run): the coasted frame joins the
+        window; once the rotation variance odometry added over the window exceeds the score's resolution
+        (``distance_px`` as an angle: the window is no longer rigid at the scale the score sees), the
+        window is aligned within the innovation gate of the newest pose's rotation and starts again."""
+        cfg = self.config
+        if not cfg.align_frames or image is None:
+            self._clear_window()
+            return ""
+        rc = cfg.sequence.register
+        if self._window:  # the motion between the window's frames (not the step into its first)
+            self._window_var += float(np.trace(step_cov[:3, :3])) / 3.0
+        if len(image.segments) >= rc.min_lines2d:
+            assert self._pose is not None
+            self._window.append((image, self._pose))
+        resolution = rc.score.distance_px / max(self._cam.fx, self._cam.fy)
+        if self._window_var <= resolution**2:
+            return ""
+        window = self._window
+        self._clear_window()
+        sigma = float(np.sqrt(np.max(np.diag(self._covariance())[:3])))
+        if not window or not np.isfinite(sigma):
+            return ""
+        gate = math.sqrt(chi2_quantile(cfg.gate_probability, 3)) if cfg.gate_probability else 3.0
+        pick = np.unique(np.linspace(0, len(window) - 1, cfg.align_frames).round().astype(int))
+        visible = visible_mask(self.line_map, camera_center(window[-1][1]), cfg.sequence.relocalize_radius_m)
+        found = align_window(
+            [window[i][0] for i in pick], [window[i][1] for i in pick], self.line_map.segments, self._cam,
+            max(gate * sigma, 2.0 * resolution), resolution, rc, visible,
+        )  # fmt: skip
+        if found is None:
+            return ""
+        assert self._pose is not None
+        graph = gtsam.NonlinearFactorGraph()
+        graph.add(rotation_prior(frame_key(self._k), self._pose, found))
+        self._update_only(graph)
+        self.alignments += 1
+        turn = math.degrees(float(np.linalg.norm(found.rotation)))
+        spread = math.degrees(math.sqrt(float(np.trace(found.covariance))))
+        return f"; the last {len(window)} frames' summed score turned them {turn:.1f} deg (+-{spread:.1f})"
+
+    def _update_only(self, graph: gtsam.NonlinearFactorGraph) -> None:
+        """Adds factors on existing frames to iSAM2 and reads the newest pose back."""
+        assert self._isam is not None
+        self._isam.update(graph, gtsam.Values())
+        self._pose = from_pose3(self._isam.calculateEstimatePose3(frame_key(self._k)))
 
     def _reanchor(self) -> None:
         """Restarts iSAM2 with a prior at the newest pose and its marginal covariance (bounded memory)."""

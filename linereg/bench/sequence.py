@@ -173,8 +173,10 @@ def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str
     rows["per-frame"]["seconds_per_frame"] = alone_s + detect_s
     rows["smoothed"]["seconds_per_frame"] = alone_s + detect_s + graph_s
     for name, odometry in (("tracking", True), ("tracking-cv", False)):
-        results, steps, events = _track(p, odometry)
+        results, steps, events, aligned = _track(p, odometry)
         rows[name] = _row_of(results, truth, args) | _timing(steps, events, results, p)
+        rows[name]["window_alignments"] = int(aligned.sum())
+        rows[name]["align_step_s_median"] = float(np.median(steps[aligned])) if aligned.any() else None
         print(f"  {name}: {json.dumps(rows[name]['events'])}", flush=True)
     rows["tracking"] |= _segment_steps(p, lines)
     if args.global_every:
@@ -218,21 +220,24 @@ def _row(
     }  # fmt: skip
 
 
-def _track(p: dict[str, Any], odometry: bool) -> tuple[list, np.ndarray, list[str]]:
-    """Returns (Registrations, step seconds, events) of a Tracker started at the true first pose (as the
-    batch rows are), stepping through every frame from its image."""
+def _track(p: dict[str, Any], odometry: bool) -> tuple[list, np.ndarray, list[str], np.ndarray]:
+    """Returns (Registrations, step seconds, events, (K,) bool: the step ran a window alignment) of a
+    Tracker started at the true first pose (as the batch rows are), stepping through every frame from its
+    image."""
     from ..tracking import Tracker
 
     tracker = Tracker(p["line_map"], p["camera"])
     tracker.start_at(p["truth"][0])
-    results, steps, events = [], [], []
+    results, steps, events, aligned = [], [], [], []
     for k, frame in enumerate(p["frames"]):
         relative = p["relative"][k - 1] if odometry and k else None
+        before = tracker.alignments
         start = time.perf_counter()
         results.append(tracker.step(frame, relative, float(p["times"][k])))
         steps.append(time.perf_counter() - start)
         events.append(tracker.event)
-    return results, np.array(steps), events
+        aligned.append(tracker.alignments > before)
+    return results, np.array(steps), events, np.array(aligned, dtype=bool)
 
 
 def _timing(steps: np.ndarray, events: list[str], results: list, p: dict[str, Any]) -> dict[str, Any]:
