@@ -398,3 +398,33 @@ def test_a_recess_seen_at_a_slant_is_not_coloured_through_the_wall_edge_before_i
     assert hidden.sum() > 100
     assert (seen[hidden] == 0).all(), f"{(seen[hidden] > 0).sum()} of {hidden.sum()} coloured through"
     assert (seen[recess & (crossing > 3.0 * pixel_m)] > 0).mean() > 0.9  # the slanted recess sees itself
+
+
+def test_a_point_half_a_spacing_beyond_an_occluders_last_splat_is_hidden():
+    # a wall at 30 m and a wall behind it at 60 m, both sampled on grids 2.9 px apart; the near wall's
+    # outline lies 0.99 of a spacing beyond its last column of samples, whose splats (3 px wide) stop
+    # ~1.5 px short of it: far points in between are hidden, and the test reaches them
+    s = 2.9 * 30.0 / CAMERA.fx  # 2.9 px at 30 m
+    u_last = 100.45  # the near wall's last column, px
+    x_last = (u_last - CAMERA.cx) * 30.0 / CAMERA.fx
+    x_edge = x_last + 0.99 * s
+    cols = x_last - s * np.arange(40)
+    rows = np.arange(-3.0, 3.0, s)
+    near = np.c_[np.repeat(cols, len(rows)), np.tile(rows, len(cols)), np.full(len(cols) * len(rows), 30.0)]
+    far_cols = 2.0 * (x_last + s * np.arange(-30, 30) + 0.8 * s)  # one column 0.8 spacing beyond the last
+    far_rows = np.arange(-9.0, 9.0, 2.0 * s)
+    far = np.c_[
+        np.repeat(far_cols, len(far_rows)),
+        np.tile(far_rows, len(far_cols)),
+        np.full(far_cols.size * far_rows.size, 60.0),
+    ]
+    photo = np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8)
+    _, seen = linereg.colorize(np.r_[far, near], [photo], CAMERA, look_from([0, 0, 0])[None])
+    crossing = far[:, :2] / 2.0  # where a far point's ray crosses z = 30
+    inside_rows = np.abs(crossing[:, 1]) < 2.5
+    hidden = inside_rows & (crossing[:, 0] < x_edge - 0.1 * s)
+    assert (hidden & (crossing[:, 0] > x_last + 0.5 * s)).sum() >= 5
+    assert (seen[: len(far)][hidden] == 0).all(), f"{(seen[: len(far)][hidden] > 0).sum()} coloured through"
+    clear = crossing[:, 0] > x_edge + 3.0 * s / 2.9
+    u = CAMERA.fx * far[:, 0] / 60.0 + CAMERA.cx
+    assert (seen[: len(far)][clear & (u < CAMERA.width - 3)] > 0).mean() > 0.9

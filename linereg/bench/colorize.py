@@ -117,8 +117,10 @@ def truly_visible(scene: Any, k: int, points: np.ndarray) -> tuple[np.ndarray, n
 
     Each point's own ray meets the planes of the faces the z-buffer shows at its pixel and the 8 round it:
     state 1 (visible) when one of them lies within ``NOISE_TOLERANCE_M`` of the point (scan noise is 1 cm),
-    -1 (occluded) when every one is a face lying more than ``OCCLUDED_M`` in front of it, 0 otherwise
-    (beside an edge, or next to the sky).
+    -1 (occluded) when every one is a face lying more than ``OCCLUDED_M`` in front of it and the point lies
+    on none of their planes (within ``NOISE_TOLERANCE_M``, measured along the normal: a point 2 cm under
+    the face the photo shows, seen at 80 degrees, lies 0.1 m behind it along the ray, but on it), 0
+    otherwise (beside an edge, or next to the sky).
     """
     from ..color.project import project
     from ..sim.render import rasterize
@@ -133,14 +135,18 @@ def truly_visible(scene: Any, k: int, points: np.ndarray) -> tuple[np.ndarray, n
     row, col = np.floor(pr.v + 0.5).astype(np.int64), np.floor(pr.u + 0.5).astype(np.int64)
     padded = np.pad(face, 1, constant_values=-1)
     gap = np.full((9, len(row)), np.inf)  # point depth - face depth along the point's ray, per neighbour
+    on_plane = np.zeros(len(row), bool)  # within the noise of a shown face's plane, along its normal
+    cam_points = points[pr.index] @ R.T + t
     for i, (dy, dx) in enumerate((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1)):
         f = padded[row + 1 + dy, col + 1 + dx]
         has = f >= 0
         denominator = np.einsum("nk,nk->n", normals[f[has]], ray[has])
         with np.errstate(divide="ignore"):
             gap[i, has] = pr.z[has] - offsets[f[has]] / denominator
+        off_plane = np.einsum("nk,nk->n", normals[f[has]], cam_points[has]) - offsets[f[has]]
+        on_plane[has] |= np.abs(off_plane) <= NOISE_TOLERANCE_M
     visible = (np.abs(gap) <= NOISE_TOLERANCE_M).any(axis=0)
-    occluded = (gap > OCCLUDED_M).all(axis=0) & np.isfinite(gap).all(axis=0)
+    occluded = (gap > OCCLUDED_M).all(axis=0) & np.isfinite(gap).all(axis=0) & ~on_plane
     return pr.index, row * camera.width + col, np.where(visible, 1, np.where(occluded, -1, 0))
 
 

@@ -38,9 +38,10 @@ class VisibilityConfig:
     # the slope term of the tolerance stops at this tan(incidence): a surface seen more grazing than
     # atan(max_slope) hides parts of itself rather than let what lies behind an occluder through
     max_slope: float = 1.5
-    # the depth test covers the point's own splat and at least this many pixels round its pixel: a point
-    # beside an occluder's silhouette is not coloured (its photo colour there mixes both surfaces anyway:
-    # bilinear sampling, optical blur), nor one whose splat overlaps an occluder's (``depth.behind_m``)
+    # the depth test covers the pixels within half the point's splat diameter (``depth.footprint_radius_px``:
+    # an occluder's outline lies up to half a spacing beyond its splats) and at least this many round its
+    # pixel: a point beside an occluder's silhouette is not coloured (its photo colour there mixes both
+    # surfaces anyway: bilinear sampling, optical blur), nor one whose splat overlaps an occluder's
     silhouette_margin_px: int = 1
     # the depth test allows this many pixels of the surface's slope (``depth.tolerance_m``): a neighbour's
     # splat is tilted by its own voxel's normal (a few degrees off on a noisy or sparse surface) from

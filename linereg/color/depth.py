@@ -9,8 +9,9 @@ over levels; ``fill_gaps`` then closes the holes irregular sampling leaves. The 
 round the photo where points just outside it splat too, so an occluder crossing the image border hides
 what lies behind it up to the border. Square splats lie in their point's tangent plane
 (``depth_slope``), so a slanted surface does not hide itself. The depth test (``behind_m``) evaluates a
-point's own tangent plane at the pixels of its splat and of a silhouette margin round its pixel: a
-nearer surface anywhere there hides it, and the tolerance stays small. Every step of the buffer is a
+point's own tangent plane at the pixels within half its splat diameter of its pixel (an occluder's outline
+lies up to half a spacing beyond its splats): a nearer surface anywhere there hides it, and the tolerance
+stays small. Every step of the buffer is a
 minimum, so buffers of different chunks combine by ``np.minimum`` before or after ``finish`` alike
 (chunks may be splatted on different machines).
 """
@@ -224,11 +225,17 @@ def diameter_px(spacing_m: np.ndarray, z: np.ndarray, camera: Camera, config: Vi
 
 
 def footprint_radius_px(diameter: np.ndarray, config: VisibilityConfig) -> np.ndarray:
-    """Returns (n,) int64 the half-width (px) of the square of pixels a point's depth test covers: its own
-    splat (``ceil(d)`` pixels wide, up to ``EXACT_MAX_PX``) and at least ``silhouette_margin_px`` round
-    its pixel."""
-    half = np.ceil((np.minimum(np.ceil(diameter), EXACT_MAX_PX) - 1.0) / 2.0).astype(np.int64)
-    return np.maximum(half, config.silhouette_margin_px)
+    """Returns (n,) int64 the half-width (px) of the square of pixels a point's depth test covers: half its
+    splat diameter (``EXACT_MAX_PX`` at most), rounded up, and at least ``silhouette_margin_px``.
+
+    A surface's outline lies anywhere between its outermost sample and where the next one would be, a
+    spacing further on, and its splats cover only the first half of that gap. A point just inside an
+    occluder's true outline therefore lies up to half a spacing from the occluder's nearest splat, and its
+    test reaches that far. The point's own spacing stands for the occluder's (surfaces side by side are
+    scanned alike); it also covers the point's own splat, ``ceil(d)`` pixels wide.
+    """
+    reach = np.ceil(np.minimum(diameter, EXACT_MAX_PX) / 2.0).astype(np.int64)
+    return np.maximum(reach, config.silhouette_margin_px)
 
 
 def behind_m(
