@@ -428,3 +428,56 @@ def test_a_point_half_a_spacing_beyond_an_occluders_last_splat_is_hidden():
     clear = crossing[:, 0] > x_edge + 3.0 * s / 2.9
     u = CAMERA.fx * far[:, 0] / 60.0 + CAMERA.cx
     assert (seen[: len(far)][clear & (u < CAMERA.width - 3)] > 0).mean() > 0.9
+
+
+def test_the_compiled_view_pass_equals_the_numpy_functions_bit_for_bit():
+    from linereg.color.config import VisibilityConfig
+    from linereg.color.project import view_points
+
+    rng = np.random.default_rng(11)
+    points = rng.uniform([-30, -20, -5], [30, 20, 60], (20_000, 3)) + np.array([4.0e5, 5.0e6, 0.0])  # UTM
+    normals = rng.normal(size=(len(points), 3)).astype(np.float32)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    normals[::7] = np.nan  # unknown normals
+    spacing = rng.uniform(0.01, 0.3, len(points)).astype(np.float32)
+    angle = 0.3
+    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    pose = make_cam_from_world(R, -R @ [4.0e5, 5.0e6, -10.0])
+    rows = np.flatnonzero(rng.random(len(points)) < 0.8)
+    for margin in (0.0, 8.5):
+        args = (points, normals, spacing, CAMERA, pose, VisibilityConfig(), rows, margin)
+        compiled, reference = view_points(*args), view_points(*args, compiled=False)
+        assert len(compiled.index) > 1000
+        for name in ("index", "u", "v", "z", "diameter", "slope", "distance", "cos"):
+            assert np.array_equal(getattr(compiled, name), getattr(reference, name)), name
+
+
+def test_voxel_statistics_by_hash_equal_those_by_sorting():
+    from linereg.color.surface import _voxel_statistics
+
+    rng = np.random.default_rng(12)
+    points = np.r_[rng.uniform(0, 5, (5000, 3)), rng.uniform(0, 5, (50, 3)) * [1, 1, 0]] + [
+        4.0e5,
+        5.0e6,
+        30.0,
+    ]
+    spacing, normals, count = _voxel_statistics(points, 0.7)
+    # the same statistics by np.unique and np.bincount
+    cell = np.floor(points / 0.7)
+    local = points - cell * 0.7
+    cell -= cell.min(axis=0)
+    dims = cell.max(axis=0) + 1.0
+    key = (cell[:, 0] * dims[1] + cell[:, 1]) * dims[2] + cell[:, 2]
+    _, inverse, counts = np.unique(key, return_inverse=True, return_counts=True)
+    mean = np.stack([np.bincount(inverse, weights=local[:, i]) for i in range(3)], 1) / counts[:, None]
+    cov = np.empty((len(counts), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            s = np.bincount(inverse, weights=local[:, i] * local[:, j]) / counts
+            cov[:, i, j] = cov[:, j, i] = s - mean[:, i] * mean[:, j]
+    _, vectors = np.linalg.eigh(cov)
+    expected = vectors[:, :, 0].astype(np.float32)[inverse]
+    expected[counts[inverse] < 3] = np.nan
+    assert np.array_equal(count, counts[inverse])
+    assert np.array_equal(normals, expected, equal_nan=True)
+    assert spacing.dtype == np.float32 and np.isfinite(spacing).all()

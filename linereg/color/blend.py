@@ -18,10 +18,9 @@ import cv2
 import numpy as np
 
 from ..camera import Camera
-from ..geometry import camera_center
 from .config import ColorizeConfig
-from .depth import behind_m, depth_slope, diameter_px, footprint_radius_px, tolerance_m
-from .project import project
+from .depth import behind_m, footprint_radius_px, tolerance_m
+from .project import view_points
 
 REMAP_COLUMNS = 1024  # cv2.remap takes maps of fewer than 32767 rows: lookups are laid out this wide
 
@@ -83,21 +82,15 @@ def observe(
     rows: (n,) int64 the rows that may be in view (``cull.rows_in_view``), default all.
     """
     vis, wts = config.visibility, config.weights
-    pr = project(points, photo.camera, photo.cam_from_world, vis.near_m, rows)
-    to_eye = camera_center(photo.cam_from_world) - points[pr.index]
-    distance = np.sqrt(np.einsum("nk,nk->n", to_eye, to_eye)).astype(np.float32)
-    cos = np.abs(np.einsum("nk,nk->n", normals[pr.index], to_eye)).astype(np.float32) / distance
-    cos = np.nan_to_num(cos, nan=1.0)  # unknown normal (an isolated point): taken as facing the photo
+    pr = view_points(points, normals, spacing, photo.camera, photo.cam_from_world, vis, rows)
+    cos = pr.cos
     tan = np.minimum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, 1e-3), vis.max_slope)
-    diameter = diameter_px(spacing[pr.index], pr.z, photo.camera, vis)
-    # the point's tangent plane against the depth map over its splat and a silhouette margin
-    normals_cam = np.einsum("nk,jk->nj", normals[pr.index], photo.cam_from_world[:3, :3].astype(np.float32))
-    slope = depth_slope(normals_cam, pr.u, pr.v, pr.z, photo.camera, vis.max_slope)
-    radius = footprint_radius_px(diameter, vis)
-    behind = behind_m(depth, pr.u, pr.v, pr.z, slope, radius)
-    tolerance = tolerance_m(pr.z, diameter, tan, photo.camera, vis)
+    # the point's tangent plane against the depth map over the pixels within half its splat diameter
+    radius = footprint_radius_px(pr.diameter, vis)
+    behind = behind_m(depth, pr.u, pr.v, pr.z, pr.slope, radius)
+    tolerance = tolerance_m(pr.z, pr.diameter, tan, photo.camera, vis)
     keep = np.flatnonzero((behind <= tolerance) & (cos >= wts.min_cos))
-    u, v, cos, distance = pr.u[keep], pr.v[keep], cos[keep], distance[keep]
+    u, v, cos, distance = pr.u[keep], pr.v[keep], cos[keep], pr.distance[keep]
     weight = cos**wts.angle_power * distance ** (-wts.range_power) * photo.sharpness
     weight *= _border_ramp(u, v, photo.camera, wts.border_px)
     weight = weight**wts.blend_power

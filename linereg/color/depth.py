@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
+from . import kernels
 from .config import VisibilityConfig
 
 EXACT_MAX_PX = 5  # splats up to this wide are exact squares of pixels; wider ones go to the pyramid
@@ -94,40 +95,17 @@ def splat(
     of the point's tangent plane at each pixel rather than its own, pyramid splats stay flat.
     """
     side = np.maximum(np.ceil(diameter_px), 1.0).astype(np.int64)
-    index, depth = [], []
-    for s in np.unique(np.minimum(side, EXACT_MAX_PX + 1)):
-        sel = np.flatnonzero(side == s) if s <= EXACT_MAX_PX else np.flatnonzero(side > EXACT_MAX_PX)
-        if s <= EXACT_MAX_PX:
-            rows, cols = _square_pixels(layout, u[sel], v[sel], int(s))
-            index.append(((rows + PAD_PX) * (layout.width + 2 * PAD_PX) + cols + PAD_PX).ravel())
-            d = np.broadcast_to(z[sel, None, None], rows.shape)
-            if slope is not None:
-                du, dv = cols - u[sel, None, None], rows - v[sel, None, None]
-                d = d + slope[sel, 0, None, None] * du + slope[sel, 1, None, None] * dv
-            depth.append(d.ravel())
-        else:
-            level = np.minimum(np.ceil(np.log2(diameter_px[sel])), layout.max_level).astype(np.int64)
-            block = _block_indices(layout, u[sel], v[sel], level)
-            reaches = block >= 0  # a point outside the image whose block does not reach it: none
-            index.append(block[reaches])
-            depth.append(z[sel][reaches])
-    if index:
-        np.minimum.at(buffer, np.concatenate(index), np.concatenate(depth).astype(np.float32))
-
-
-def _square_pixels(
-    layout: SplatLayout, u: np.ndarray, v: np.ndarray, side: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (n, side, side) int64 rows and columns of the ``side`` x ``side`` pixels centred on each
-    point (image pixels; clipped to the image and its margin of ``PAD_PX``: a pixel clipped to the
-    margin's outer edge lies outside the image, as did the pixel it stands for)."""
-    first_col = np.floor(u - 0.5 * side + 1.0).astype(np.int64)  # side 1: the pixel holding the point
-    first_row = np.floor(v - 0.5 * side + 1.0).astype(np.int64)
-    steps = np.arange(side)
-    cols = np.clip(first_col[:, None] + steps, -PAD_PX, layout.width - 1 + PAD_PX)  # (n, side)
-    rows = np.clip(first_row[:, None] + steps, -PAD_PX, layout.height - 1 + PAD_PX)
-    shape = (len(u), side, side)
-    return np.broadcast_to(rows[:, :, None], shape), np.broadcast_to(cols[:, None, :], shape)
+    square = side <= EXACT_MAX_PX
+    sel = np.flatnonzero(square)
+    tilt = np.zeros((len(sel), 2), np.float32) if slope is None else slope[sel]
+    kernels.splat_squares(
+        buffer, layout.width + 2 * PAD_PX, PAD_PX, layout.width, layout.height,
+        u[sel], v[sel], z[sel], side[sel], tilt, slope is not None,
+    )  # fmt: skip
+    sel = np.flatnonzero(~square)
+    if len(sel):
+        level = np.minimum(np.ceil(np.log2(diameter_px[sel])), layout.max_level).astype(np.int64)
+        kernels.splat_blocks(buffer, _block_indices(layout, u[sel], v[sel], level), z[sel])
 
 
 def depth_slope(
@@ -251,31 +229,7 @@ def behind_m(
     map's border pixels stand for what lies there.
     depth: (H, W) float32; u, v, z: (n,) float32; slope: (n, 2) float32 (``depth_slope``); radius: (n,) int64.
     """
-    reach = int(radius.max(initial=0))
-    least = int(radius.min(initial=0))
-    padded = np.pad(depth, reach, mode="edge").ravel()
-    stride = depth.shape[1] + 2 * reach
-    col, row = np.floor(u + 0.5), np.floor(v + 0.5)  # float32: the pixel holding each point
-    centre = (row.astype(np.int64) + reach) * stride + col.astype(np.int64) + reach
-    plane = z + slope[:, 0] * (col - u) + slope[:, 1] * (row - v)  # at the centre of that pixel
-    worst = plane - padded[centre]
-    su, sv = np.ascontiguousarray(slope[:, 0]), np.ascontiguousarray(slope[:, 1])
-    for dy in range(-reach, reach + 1):
-        for dx in range(-reach, reach + 1):
-            ring, offset = max(abs(dy), abs(dx)), dy * stride + dx
-            if ring == 0:
-                continue
-            if ring <= least:  # every point's footprint reaches this pixel
-                np.maximum(
-                    worst,
-                    plane + su * np.float32(dx) + sv * np.float32(dy) - padded[centre + offset],
-                    out=worst,
-                )
-                continue
-            sel = np.flatnonzero(radius >= ring)
-            here = plane[sel] + su[sel] * np.float32(dx) + sv[sel] * np.float32(dy)
-            worst[sel] = np.maximum(worst[sel], here - padded[centre[sel] + offset])
-    return worst
+    return kernels.behind(np.ascontiguousarray(depth), u, v, z, slope, radius)
 
 
 def tolerance_m(

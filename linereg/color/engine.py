@@ -23,9 +23,9 @@ from ..camera import Camera
 from .blend import Observation, Photo, accumulate, blended, focus_measure, observe, sharpness_weights
 from .config import ColorizeConfig
 from .cull import CELL_VOXELS, Cells, make_cells, rows_in_view
-from .depth import SplatLayout, crop, depth_slope, diameter_px, fill_gaps, finish, splat
+from .depth import SplatLayout, crop, fill_gaps, finish, splat
 from .gains import clear_observations, estimate_gains
-from .project import project
+from .project import view_points
 from .surface import default_voxel_m, local_surface
 
 log = logging.getLogger(__name__)
@@ -132,14 +132,10 @@ def depth_task(shared: tuple, item: tuple[int, int, tuple[int, ...]]) -> tuple:
         buffer = layout.empty()
         # points just outside the photo splat into it too (an occluder across the image border)
         rows = rows_in_view(cells, view.camera, view.cam_from_world, vis.near_m, layout.margin_px)
-        pr = project(points, view.camera, view.cam_from_world, vis.near_m, rows, layout.margin_px)
-        # einsum, not ``@``: BLAS threads of several pool workers would fight over the cores
-        normals_cam = np.einsum(
-            "nk,jk->nj", normals[pr.index], view.cam_from_world[:3, :3].astype(np.float32)
+        seen = view_points(
+            points, normals, spacing, view.camera, view.cam_from_world, vis, rows, layout.margin_px
         )
-        slope = depth_slope(normals_cam, pr.u, pr.v, pr.z, view.camera, vis.max_slope)
-        diameter = diameter_px(spacing[pr.index], pr.z, view.camera, vis)
-        splat(buffer, layout, pr.u, pr.v, pr.z, diameter, slope)
+        splat(buffer, layout, seen.u, seen.v, seen.z, seen.diameter, seen.slope)
         maps.append(finish(buffer, layout))
     sample = None
     if ids and ids[0] == 0:

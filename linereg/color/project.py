@@ -11,6 +11,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import Camera
+from ..geometry import camera_center
+from . import kernels
+from .config import VisibilityConfig
+from .depth import depth_slope, diameter_px
 
 
 @dataclass(frozen=True)
@@ -65,6 +69,63 @@ def project(
         (u >= -0.5 - m) & (u < camera.width - 0.5 + m) & (v >= -0.5 - m) & (v < camera.height - 0.5 + m)
     )
     return Projection(rows[inside], u[inside], v[inside], z[inside].astype(np.float32))
+
+
+@dataclass(frozen=True)
+class ViewPoints(Projection):
+    """A Projection with what the depth buffer and the depth test need of each point, all (n,) float32:
+    ``diameter`` px (``depth.diameter_px``), ``slope`` (n, 2) (``depth.depth_slope``), ``distance`` m from
+    the camera centre, ``cos`` |cos| of the angle between the viewing ray and the normal (1: unknown normal).
+    """
+
+    diameter: np.ndarray
+    slope: np.ndarray
+    distance: np.ndarray
+    cos: np.ndarray
+
+
+def view_points(
+    points: np.ndarray,
+    normals: np.ndarray,
+    spacing: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    config: VisibilityConfig,
+    rows: np.ndarray | None = None,
+    margin_px: float = 0.0,
+    compiled: bool = True,
+) -> ViewPoints:
+    """Returns the ViewPoints of (P, 3) float64 world points with their (P, 3) float32 normals (NaN:
+    unknown) and (P,) float32 spacing m, as ``project`` selects them.
+
+    A pinhole camera takes one compiled pass over the points (``kernels.view_geometry``); a camera with
+    distortion, or ``compiled=False``, the numpy functions it does the same as.
+    """
+    if rows is None:
+        rows = np.arange(len(points))
+    centre = camera_center(cam_from_world)
+    if compiled and not camera.has_distortion:
+        m = margin_px
+        bounds = np.array([-0.5 - m, camera.width - 0.5 + m, -0.5 - m, camera.height - 0.5 + m])
+        intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
+        focal = config.splat_scale * max(camera.fx, camera.fy)
+        pose = np.ascontiguousarray(cam_from_world, dtype=np.float64)
+        return ViewPoints(
+            *kernels.view_geometry(
+                points, np.asarray(rows, np.int64), normals, spacing, pose, centre, intrinsics, bounds,
+                config.near_m, config.max_slope, focal,
+            )
+        )  # fmt: skip
+    pr = project(points, camera, cam_from_world, config.near_m, rows, margin_px)
+    # einsum, not ``@``: BLAS threads of several pool workers would fight over the cores
+    normals_cam = np.einsum("nk,jk->nj", normals[pr.index], cam_from_world[:3, :3].astype(np.float32))
+    slope = depth_slope(normals_cam, pr.u, pr.v, pr.z, camera, config.max_slope)
+    to_eye = centre - points[pr.index]
+    distance = np.sqrt(np.einsum("nk,nk->n", to_eye, to_eye)).astype(np.float32)
+    cos = np.abs(np.einsum("nk,nk->n", normals[pr.index], to_eye)).astype(np.float32) / distance
+    cos = np.nan_to_num(cos, nan=1.0)  # unknown normal (an isolated point): taken as facing the photo
+    diameter = diameter_px(spacing[pr.index], pr.z, camera, config)
+    return ViewPoints(pr.index, pr.u, pr.v, pr.z, diameter, slope, distance, cos)
 
 
 def field_of_view(camera: Camera, margin_px: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
