@@ -98,7 +98,7 @@ def align_window(
         return None
     alike = turns[values >= (1.0 - config.decide.margin) * top] - best
     covariance = alike.T @ alike / len(alike) + np.eye(3) * step**2 / 12.0
-    zero = scored.get((0.0, 0.0, 0.0), value(np.zeros(3)))
+    zero = scored[(0.0, 0.0, 0.0)]  # the first grid's centre
     return WindowAlignment(best, centre, covariance, top, zero, len(scored))
 
 
