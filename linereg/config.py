@@ -325,8 +325,12 @@ class DecideConfig:
     margin: float = 0.15
     distinct_angle_deg: float = 2.0
     distinct_fraction: float = 0.05
-    # the best must explain at least this fraction of the image's line length: below it, chance alignments
-    # of a dense map explain as much
+    # the best pose's number of false alarms (significance.py): how many of the poses searched would match as
+    # many image segments by chance; an answer needs log10 of it below this (0: fewer than one, the
+    # a-contrario rule)
+    max_log10_nfa: float = 0.0
+    # a frame tracked from its prediction must explain this fraction of the image's line length (tracking,
+    # sequence); a global answer uses max_log10_nfa instead
     min_explained_fraction: float = 0.15
     contenders: int = 4  # the best distinct poses of the search are refined before deciding
     # the best pose turned (pan, tilt) beyond distinct_angle_deg, moving its projection up to this fraction

@@ -30,6 +30,7 @@ from .registration import Registration, check_segments
 from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
 from .score import ImageLines, Score, image_lines, project_clipped, score_pose, shifted_values
 from .search import Found, MapSignatures, map_signatures, search
+from .significance import SearchSpace, chance_probabilities, depth_of, log10_tail
 from .timing import StageTimer
 from .vanishing import vanishing_directions
 
@@ -147,7 +148,8 @@ def register_undistorted(
             )
             for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
-    return decide(refined, found, view, image, camera, config, timer)
+    space = SearchSpace.of(regions, len(rotations), config)
+    return decide(refined, found, view, image, camera, config, timer, space)
 
 
 def decide(
@@ -158,11 +160,12 @@ def decide(
     camera: Camera,
     config: RegisterConfig,
     timer: StageTimer,
+    space: SearchSpace,
 ) -> Registration:
-    """Returns the Registration of the best refined pose: ``success`` only when it explains enough of the
-    image with enough matches and every distinct pose scores below ``(1 - margin)`` of it: the other poses
-    found, and the best pose itself turned by small angles (``turned_rivals``), which the search need not
-    have visited."""
+    """Returns the Registration of the best refined pose: ``success`` only when it has enough matches, more
+    than chance would give any of the poses the search examined (``space``: ``significance.py``), and every
+    distinct pose scores below ``(1 - margin)`` of it: the other poses found, and the best pose itself turned
+    by small angles (``turned_rivals``), which the search need not have visited."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -181,16 +184,23 @@ def decide(
         ]
         rivals = [(T, s) for T, s in rivals if differs(T, best.cam_from_world, lines3d, dc)]
         rivals.append(turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config))
+        matches = best.score.matches(dc.min_cover)
+        distinct = len(np.unique(matches[:, 1]))  # chance events are per map segment (significance.py)
+        nfa = log10_nfa(best.cam_from_world, distinct, seen[order[0]][1], image, camera, config, space)
     rivals.sort(key=lambda p: -p[1])
     alternatives = _distinct(rivals, _first, lines3d, dc)[:8]
     runner_up = max((s for _, s in alternatives), default=0.0)
-    matches = best.score.matches(dc.min_cover)
     explained = best.score.explained_length / max(image.total_length, 1e-9)
     reason = ""
-    if best.score.value <= 0 or explained < dc.min_explained_fraction:
-        reason = f"the best pose explains {100 * explained:.0f} % of the image's lines (< {100 * dc.min_explained_fraction:.0f} %)"
+    if best.score.value <= 0:
+        reason = "the best pose explains none of the image's lines"
     elif len(matches) < config.min_inliers:
         reason = f"the best pose matches {len(matches)} image segments, fewer than {config.min_inliers}"
+    elif nfa >= dc.max_log10_nfa:
+        reason = (
+            f"not significant: the best pose matches {len(matches)} of {len(image.segments)} image segments "
+            f"to {distinct} map segments, as 10^{nfa:.1f} chance poses among those searched would"
+        )
     elif runner_up >= (1.0 - dc.margin) * best.score.value:
         T = next(T for T, s in alternatives if s == runner_up)
         turn = rotation_error_deg(T[:3, :3], best.cam_from_world[:3, :3])
@@ -209,11 +219,31 @@ def decide(
         rms_px=best.rms_px,
         score=float(best.score.value),
         explained_fraction=float(explained),
+        log10_nfa=float(nfa),
         runner_up_score=float(max(runner_up, 0.0)),
         alternatives=np.array([T for T, _ in alternatives]).reshape(-1, 4, 4),
         alternative_scores=np.array([s for _, s in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
+
+
+def log10_nfa(
+    cam_from_world: np.ndarray,
+    matched: int,
+    seen: np.ndarray,
+    image: ImageLines,
+    camera: Camera,
+    config: RegisterConfig,
+    space: SearchSpace,
+) -> float:
+    """Returns log10 of the number of false alarms of a pose whose matches use ``matched`` of the (K, 6) map
+    segments it sees: how many of the poses in ``space`` would match as many by chance
+    (``significance.py``)."""
+    sc = config.score
+    projected, _ = project_clipped(seen, camera, cam_from_world, sc.min_depth_m)
+    p = chance_probabilities(image, projected, sc.distance_px, sc.angle_deg, config.decide.min_cover)
+    tests = space.log10_tests(camera, depth_of(seen, cam_from_world), sc.distance_px)
+    return tests + log10_tail(p, matched)
 
 
 def view_score(

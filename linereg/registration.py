@@ -21,6 +21,9 @@ class Registration:
     rms_px: root mean square distance of the matched map points to their image lines.
     score: the pose's score (px): image line length the visible map explains, less what it predicts in
         empty image areas (``score.py``); explained_fraction: explained length / the image's line length.
+    log10_nfa: log10 of the number of poses among those searched that would match as many image segments by
+        chance (``significance.py``); an answer needs it below ``DecideConfig.max_log10_nfa`` (0); NaN when
+        not computed.
     runner_up_score: the best score of a pose clearly distinct from the winner (another rotation, or a
         camera centre clearly elsewhere); 0 when none was found.
     alternatives: (A, 4, 4) float64 distinct poses found, best first (the winner not included), with
@@ -37,6 +40,7 @@ class Registration:
     rms_px: float = float("nan")
     score: float = 0.0
     explained_fraction: float = 0.0
+    log10_nfa: float = float("nan")
     runner_up_score: float = 0.0
     alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     alternative_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -59,6 +63,7 @@ class Registration:
             "num_inliers": self.num_inliers,
             "score": self.score,
             "explained_fraction": self.explained_fraction,
+            "log10_nfa": None if not np.isfinite(self.log10_nfa) else self.log10_nfa,
             "runner_up_score": self.runner_up_score,
             "ambiguity": self.ambiguity,
             "rms_px": None if not np.isfinite(self.rms_px) else self.rms_px,

@@ -288,6 +288,7 @@ def reply_fields(rep: LocalizeReply) -> dict:
         "num_inliers": int(rep.num_inliers),
         "score": float(rep.score),
         "explained_fraction": float(rep.explained_fraction),
+        "log10_nfa": float(rep.log10_nfa),
         "runner_up_score": float(rep.runner_up_score),
         "ambiguity": float(rep.ambiguity),
         "rms_px": float(rep.rms_px),
@@ -345,6 +346,8 @@ def reply_of(doc: dict, limits: Limits) -> LocalizeReply:
         num_inliers=require(doc, "num_inliers", int),
         score=number(doc, "score"),
         explained_fraction=number(doc, "explained_fraction"),
+        # added in 2026-11 without a version change: a reply without it says unknown
+        log10_nfa=number(doc, "log10_nfa", allow_nan=True) if doc.get("log10_nfa") is not None else math.nan,
         runner_up_score=number(doc, "runner_up_score"),
         ambiguity=number(doc, "ambiguity", allow_nan=True),
         rms_px=number(doc, "rms_px", allow_nan=True) if doc.get("rms_px") is not None else math.nan,

@@ -88,6 +88,7 @@ def messages() -> dict[str, object]:
             num_inliers=42,
             score=5121.0,
             explained_fraction=0.625,
+            log10_nfa=-42.5,
             runner_up_score=1280.25,
             ambiguity=0.25,
             rms_px=0.61,

@@ -73,6 +73,7 @@ class LocalizeReply:
     cam_from_world: (4, 4) float64 (x_cam = R x_world + t); covariance: (6, 6) float64 (rotation rad,
     translation m) in the camera frame, NaN when unknown; matches: (K, 2) int64 (i2d, j3d) or None;
     score, runner_up_score: px (``linereg.score``); ambiguity: runner-up / winner score in [0, 1];
+    log10_nfa: log10 of the chance poses that would match as well (``linereg.significance``), NaN unknown;
     alternatives: (A, 4, 4) float64 distinct poses with alternative_scores (A,); timings: stage -> seconds.
     """
 
@@ -84,6 +85,7 @@ class LocalizeReply:
     num_inliers: int = 0
     score: float = 0.0
     explained_fraction: float = 0.0
+    log10_nfa: float = math.nan
     runner_up_score: float = 0.0
     ambiguity: float = 1.0
     rms_px: float = math.nan
@@ -116,6 +118,7 @@ class LocalizeReply:
             num_inliers=int(reg.num_inliers),
             score=float(reg.score),
             explained_fraction=float(reg.explained_fraction),
+            log10_nfa=float(reg.log10_nfa),
             runner_up_score=float(reg.runner_up_score),
             ambiguity=float(reg.ambiguity),
             rms_px=float(reg.rms_px),
@@ -141,6 +144,7 @@ class LocalizeReply:
             rms_px=self.rms_px,
             score=self.score,
             explained_fraction=self.explained_fraction,
+            log10_nfa=self.log10_nfa,
             runner_up_score=self.runner_up_score,
             alternatives=np.array(self.alternatives),
             alternative_scores=np.array(self.alternative_scores),

@@ -166,6 +166,7 @@ def test_every_registration_field_crosses_the_wire():
         rms_px=0.5,
         score=812.5,
         explained_fraction=0.5,
+        log10_nfa=-12.5,
         runner_up_score=120.0,
         alternatives=np.stack([np.eye(4), 2 * np.eye(4)]),
         alternative_scores=np.array([120.0, 60.0]),
