@@ -19,6 +19,8 @@ With ``--plane-directions``, the maps' direction clusters also hold the directio
 (``plane_directions.map_clusters``; the planes are segmented a second time here, which costs seconds).
 ``--map-config auto`` builds each map with ``map_profile.lines3d_config_for`` (limits from the point spacing),
 ``--map-config '{"min_length_m": 0.15}'`` with those ``Lines3DConfig`` fields overridden.
+With ``--prior ROT_DEG POS_M`` every search gets a rough guess of the pose (at most that far from the truth,
+seeded by scene and image name) as a ``Prior``: the camera-LiDAR calibration case of issues 9 and 10.
 """
 
 from __future__ import annotations
@@ -105,21 +107,53 @@ def gt_matches(lines2d: np.ndarray, line_map: Any, camera: Any, cam_from_world: 
     return score.matches(config.decide.min_cover)
 
 
+def rough_guess(truth: np.ndarray, rot_deg: float, pos_m: float, seed: str) -> np.ndarray:
+    """Returns a (4, 4) cam_from_world guess: the true pose turned about a random axis by up to ``rot_deg``
+    and its centre moved in a random direction by up to ``pos_m`` (uniform; the same for the same ``seed``,
+    e.g. the image's name, on any machine)."""
+    from ..geometry import camera_center, rotation_from_vector
+
+    rng = np.random.default_rng(int.from_bytes(seed.encode()[-16:].ljust(16, b"\0"), "little"))
+    axis, move = rng.normal(size=3), rng.normal(size=3)
+    turn = rotation_from_vector(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, rot_deg)))
+    centre = camera_center(truth) + move / np.linalg.norm(move) * rng.uniform(0.0, pos_m)
+    guess = np.eye(4)
+    guess[:3, :3] = turn @ truth[:3, :3]
+    guess[:3, 3] = -guess[:3, :3] @ centre
+    return guess
+
+
 def localize_one(
-    item: RealImage, line_map: Any, bounds: tuple[float, float], stages: bool = False
+    item: RealImage,
+    line_map: Any,
+    bounds: tuple[float, float],
+    stages: bool = False,
+    prior: tuple[float, float] | None = None,
 ) -> tuple[dict[str, Any], Any]:
     """Returns (record, (lines2d, Registration)) of one image: errors, success within ``bounds``, times;
-    with ``stages``, ``record["stages"]`` holds ``real_stages.stage_record`` at the true pose."""
+    with ``stages``, ``record["stages"]`` holds ``real_stages.stage_record`` at the true pose; with
+    ``prior`` (rotation deg, position m), the search is given a rough guess that far from the truth at most
+    (``rough_guess``) as a ``Prior`` of those bounds (the camera-LiDAR calibration case)."""
     from .. import io
     from ..geometry import pose_errors
     from ..lines2d import detect
     from ..localization import localize_segments
+    from ..priors import Prior
 
+    guess = None
+    if prior is not None:
+        guess = Prior(
+            cam_from_world=rough_guess(
+                item.cam_from_world, prior[0], prior[1], f"{item.scene}/{item.image_path.name}"
+            ),
+            sigma_rot_deg=prior[0],
+            radius_m=prior[1],
+        )
     image = io.read_image(item.image_path)
     start = time.perf_counter()
     lines2d = detect(image, item.camera)
     detect_s = time.perf_counter() - start
-    result = localize_segments(lines2d, line_map, item.camera.undistorted())
+    result = localize_segments(lines2d, line_map, item.camera.undistorted(), prior=guess)
     seconds = time.perf_counter() - start
     errors = pose_errors(result.cam_from_world, item.cam_from_world) if result.success else None
     record = report.trial_record("vp", 0, result.success, errors, seconds, result.num_inliers, result.reason)
@@ -215,6 +249,7 @@ def run_scene(
     stages: bool = False,
     plane_directions: bool = False,
     map_config: str | None = None,
+    prior: tuple[float, float] | None = None,
 ) -> dict[str, Any]:
     """Returns a scene's map records and image records; maps are built once per distinct cloud file."""
     items = read_scene(folder)
@@ -230,7 +265,9 @@ def run_scene(
                 file=sys.stderr,
             )
         try:
-            record, (image, lines2d, result) = localize_one(item, maps[item.cloud_path], bounds, stages)
+            record, (image, lines2d, result) = localize_one(
+                item, maps[item.cloud_path], bounds, stages, prior
+            )
         except Exception as e:  # an image that crashes the pipeline is a finding, recorded with its cause
             records.append(
                 {
@@ -313,6 +350,15 @@ def configure(parser: argparse.ArgumentParser) -> None:
         default=None,
         help="'auto' (limits from the point spacing) or a JSON object of Lines3DConfig fields",
     )
+    parser.add_argument(
+        "--prior",
+        nargs=2,
+        type=float,
+        metavar=("ROT_DEG", "POS_M"),
+        default=None,
+        help="give each search a rough guess of the pose, at most ROT_DEG / POS_M from the truth "
+        "(seeded by the image name), as a Prior of those bounds: the camera-LiDAR calibration case",
+    )
     parser.add_argument("--max-rot-deg", type=float, default=5.0, help="success bound on R_e (default 5)")
     parser.add_argument(
         "--max-pos-m", type=float, default=0.3, help="success bound on position (default 0.3)"
@@ -329,9 +375,12 @@ def run(args: argparse.Namespace) -> int:
     if not folders:
         raise InvalidInputError(f"{data}: no scene folder with cameras.json and cloud.ply")
     bounds = (args.max_rot_deg, args.max_pos_m)
+    if args.prior is not None and (args.prior[0] <= 0 or args.prior[1] <= 0):
+        raise InvalidInputError(f"--prior: ROT_DEG and POS_M must be positive, got {args.prior}")
+    prior = None if args.prior is None else (float(args.prior[0]), float(args.prior[1]))
     overlay_dir = args.out if args.overlay else None
     scenes = [
-        run_scene(folder, bounds, overlay_dir, args.stages, args.plane_directions, args.map_config)
+        run_scene(folder, bounds, overlay_dir, args.stages, args.plane_directions, args.map_config, prior)
         for folder in folders
     ]
     records = [r for s in scenes for r in s["images"]]
@@ -355,6 +404,7 @@ def run(args: argparse.Namespace) -> int:
         "bounds": {"rotation_deg": bounds[0], "position_m": bounds[1]},
         "plane_directions": args.plane_directions,
         "map_config": args.map_config,
+        "prior": None if prior is None else {"rotation_deg": prior[0], "position_m": prior[1]},
         "scenes": scenes,
     }
     path = report.write_json_atomic(args.out / "results.json", results)
