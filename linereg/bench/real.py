@@ -26,6 +26,7 @@ seeded by scene and image name) as a ``Prior``: the camera-LiDAR calibration cas
 from __future__ import annotations
 
 import argparse
+import hashlib
 import json
 import os
 import sys
@@ -113,7 +114,7 @@ def rough_guess(truth: np.ndarray, rot_deg: float, pos_m: float, seed: str) -> n
     e.g. the image's name, on any machine)."""
     from ..geometry import camera_center, rotation_from_vector
 
-    rng = np.random.default_rng(int.from_bytes(seed.encode()[-16:].ljust(16, b"\0"), "little"))
+    rng = np.random.default_rng(int.from_bytes(hashlib.sha256(seed.encode()).digest()[:8], "little"))
     axis, move = rng.normal(size=3), rng.normal(size=3)
     turn = rotation_from_vector(axis / np.linalg.norm(axis) * np.radians(rng.uniform(0.0, rot_deg)))
     centre = camera_center(truth) + move / np.linalg.norm(move) * rng.uniform(0.0, pos_m)
