@@ -481,3 +481,32 @@ def test_voxel_statistics_by_hash_equal_those_by_sorting():
     assert np.array_equal(count, counts[inverse])
     assert np.array_equal(normals, expected, equal_nan=True)
     assert spacing.dtype == np.float32 and np.isfinite(spacing).all()
+
+
+def test_a_point_is_seen_only_if_it_passes_with_the_shifted_grids_normal_too():
+    # a wall at 10 m facing the camera; a second estimate of the normals (the voxel grid shifted by half a
+    # voxel) that agrees leaves the observation as it is, one that calls every other point's surface seen
+    # edge-on (a voxel holding two faces) takes exactly those points out
+    from linereg.batch import InlineRunner
+    from linereg.color.blend import Photo, observe
+    from linereg.color.engine import ArraySource, View, chunk_geometry, depth_pass, make_plan
+
+    rng = np.random.default_rng(13)
+    points = sampled(-3, 3, -2, 2, 10.0, 0.05, rng)
+    pose = look_from([0, 0, 0])
+    config = ColorizeConfig()
+    plan = make_plan(ArraySource(points), config)
+    (depth,), _ = depth_pass(ArraySource(points), [View(CAMERA, pose)], plan, InlineRunner())
+    spacing, normals = chunk_geometry(points, plan)
+    photo = Photo(np.full((CAMERA.height, CAMERA.width, 3), 128, np.uint8), CAMERA, pose)
+    alone = observe(photo, depth, points, spacing, normals, config)
+    assert len(alone.index) > 0.8 * len(points)  # the wall reaches past the image's sides
+    same = observe(photo, depth, points, spacing, normals, config, check_normals=normals)
+    assert np.array_equal(same.index, alone.index) and np.array_equal(same.weight, alone.weight)
+    edge_on = normals.copy()
+    along = np.cross(points[::2], [0.0, 1.0, 0.0])  # at right angles to the ray: seen along the surface
+    edge_on[::2] = along / np.linalg.norm(along, axis=1, keepdims=True)
+    checked = observe(photo, depth, points, spacing, normals, config, check_normals=edge_on)
+    odd = alone.index % 2 == 1
+    assert np.array_equal(checked.index, alone.index[odd])
+    assert np.array_equal(checked.weight, alone.weight[odd])  # weighted by the grid's own normals

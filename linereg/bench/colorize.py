@@ -250,6 +250,7 @@ def occlusion_check(scene: Any, num_images: int) -> dict[str, int]:
     maps, sample = depth_pass(source, views, plan, _inline())
     photos = prepare_photos(photos, maps, sample, plan)
     spacing, normals = chunk_geometry(scene.cloud, plan)
+    _, check = chunk_geometry(scene.cloud, plan, shifted=True)
     truth = [truly_visible(scene, k, scene.cloud) for k in range(num_images)]
     distance = np.full((num_images, len(scene.cloud)), np.inf)
     for k, (rows, _, _) in enumerate(truth):  # naive: the nearest photo a point projects into colours it
@@ -258,7 +259,7 @@ def occlusion_check(scene: Any, num_images: int) -> dict[str, int]:
     counts = dict.fromkeys(("ours", "ours_over_1m", "naive", "pairs", "visible", "visible_coloured"), 0)
     coloured = np.zeros(len(scene.cloud), bool)
     for k, (photo, depth) in enumerate(zip(photos, maps, strict=True)):
-        used = observe(photo, depth, scene.cloud, spacing, normals, config).index
+        used = observe(photo, depth, scene.cloud, spacing, normals, config, check_normals=check).index
         rows, _, state = truth[k]
         occluded = np.zeros(len(scene.cloud), bool)
         occluded[rows[state == -1]] = True

@@ -20,7 +20,7 @@ import numpy as np
 from ..camera import Camera
 from .config import ColorizeConfig
 from .depth import behind_m, footprint_radius_px, tolerance_m
-from .project import view_points
+from .project import ViewPoints, view_points
 
 REMAP_COLUMNS = 1024  # cv2.remap takes maps of fewer than 32767 rows: lookups are laid out this wide
 
@@ -75,22 +75,30 @@ def observe(
     normals: np.ndarray,
     config: ColorizeConfig,
     rows: np.ndarray | None = None,
+    *,
+    check_normals: np.ndarray | None = None,
 ) -> Observation:
     """Returns the Observation of a chunk by one photo whose (H, W) float32 depth map is ``depth``.
 
     points: (P, 3) float64 world; spacing: (P,) float32 m; normals: (P, 3) float32 (NaN: unknown);
     rows: (n,) int64 the rows that may be in view (``cull.rows_in_view``), default all.
+    check_normals: (P, 3) float32 a second estimate of the normals (``local_surface(shifted=True)``): a
+    point is seen only if it passes with both. A voxel holding two faces (a block's corner) gives a normal
+    off both; a point on the face seen edge-on then looks less grazing than it is (above ``min_cos``) and
+    its tilted tangent plane can come level with an occluder's splats. The other grid's voxel mostly
+    holds one face, and where both grids hold one face they agree.
     """
-    vis, wts = config.visibility, config.weights
+    vis = config.visibility
     pr = view_points(points, normals, spacing, photo.camera, photo.cam_from_world, vis, rows)
-    cos = pr.cos
-    tan = np.minimum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, 1e-3), vis.max_slope)
-    # the point's tangent plane against the depth map over the pixels within half its splat diameter
-    radius = footprint_radius_px(pr.diameter, vis)
-    behind = behind_m(depth, pr.u, pr.v, pr.z, pr.slope, radius)
-    tolerance = tolerance_m(pr.z, pr.diameter, tan, photo.camera, vis)
-    keep = np.flatnonzero((behind <= tolerance) & (cos >= wts.min_cos))
-    u, v, cos, distance = pr.u[keep], pr.v[keep], cos[keep], pr.distance[keep]
+    keep = np.flatnonzero(_passes(pr, depth, photo.camera, config))
+    if check_normals is not None and len(keep):
+        # the same rows project to the same pixels in the same order: only the slopes and cos differ
+        again = view_points(
+            points, check_normals, spacing, photo.camera, photo.cam_from_world, vis, pr.index[keep]
+        )
+        keep = keep[_passes(again, depth, photo.camera, config)]
+    wts = config.weights
+    u, v, cos, distance = pr.u[keep], pr.v[keep], pr.cos[keep], pr.distance[keep]
     weight = cos**wts.angle_power * distance ** (-wts.range_power) * photo.sharpness
     weight *= _border_ramp(u, v, photo.camera, wts.border_px)
     weight = weight**wts.blend_power
@@ -99,6 +107,15 @@ def observe(
         rgb /= photo.gain
     good = np.flatnonzero(weight > 0)
     return Observation(pr.index[keep[good]], rgb[good], weight[good].astype(np.float32))
+
+
+def _passes(pr: ViewPoints, depth: np.ndarray, camera: Camera, config: ColorizeConfig) -> np.ndarray:
+    """Returns (n,) bool: the projected points seen at ``min_cos`` or less grazing whose tangent plane lies
+    within the tolerance of the depth map over the pixels within half their splat diameter."""
+    vis, cos = config.visibility, pr.cos
+    tan = np.minimum(np.sqrt(np.maximum(1.0 - cos * cos, 0.0)) / np.maximum(cos, 1e-3), vis.max_slope)
+    behind = behind_m(depth, pr.u, pr.v, pr.z, pr.slope, footprint_radius_px(pr.diameter, vis))
+    return (behind <= tolerance_m(pr.z, pr.diameter, tan, camera, vis)) & (cos >= config.weights.min_cos)
 
 
 def sample_rgb(image: np.ndarray, u: np.ndarray, v: np.ndarray) -> np.ndarray:

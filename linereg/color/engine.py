@@ -97,13 +97,18 @@ def chunk_ranges(num_points: int, chunk_points: int) -> list[tuple[int, int]]:
     return [(s, min(s + chunk_points, num_points)) for s in range(0, num_points, max(chunk_points, 1))]
 
 
-def chunk_geometry(points: np.ndarray, plan: Plan) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((n,) float32 spacing, (n, 3) float32 normals) of a chunk; NaN rows for non-finite points."""
+def chunk_geometry(points: np.ndarray, plan: Plan, shifted: bool = False) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((n,) float32 spacing, (n, 3) float32 normals) of a chunk; NaN rows for non-finite points.
+
+    shifted: from the voxel grid shifted by half a voxel (``local_surface``; the normals ``observe`` checks).
+    """
     spacing = np.full(len(points), np.nan, dtype=np.float32)
     normals = np.full((len(points), 3), np.nan, dtype=np.float32)
     finite = np.flatnonzero(np.isfinite(points).all(axis=1))
     if len(finite):
-        spacing[finite], normals[finite] = local_surface(points[finite], plan.voxel_m, plan.config.surface)
+        spacing[finite], normals[finite] = local_surface(
+            points[finite], plan.voxel_m, plan.config.surface, shifted
+        )
     return spacing, normals
 
 
@@ -150,12 +155,14 @@ def colour_task(shared: tuple, item: tuple[int, int]) -> tuple[np.ndarray, np.nd
     start, stop = item
     points = source.read(start, stop)
     spacing, normals = chunk_geometry(points, plan)
+    _, check = chunk_geometry(points, plan, shifted=True)
     cells = chunk_cells(points, plan)
     total, weights = np.zeros((len(points), 3)), np.zeros(len(points))
     count = np.zeros(len(points), dtype=np.uint16)
     for photo, depth in zip(photos, maps, strict=True):
         rows = rows_in_view(cells, photo.camera, photo.cam_from_world, plan.config.visibility.near_m)
-        accumulate(total, weights, count, observe(photo, depth, points, spacing, normals, plan.config, rows))
+        seen = observe(photo, depth, points, spacing, normals, plan.config, rows, check_normals=check)
+        accumulate(total, weights, count, seen)
     return blended(total, weights), count
 
 

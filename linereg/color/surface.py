@@ -44,17 +44,21 @@ def default_voxel_m(points: np.ndarray) -> float:
 
 
 def local_surface(
-    points: np.ndarray, voxel_m: float, config: SurfaceConfig | None = None
+    points: np.ndarray, voxel_m: float, config: SurfaceConfig | None = None, shifted: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((P,) float32 spacing m, (P, 3) float32 unit normals, sign-free) of (P, 3) float64 points.
 
     Points in a voxel of ``voxel_m`` with fewer than ``min_points`` take the statistics of the voxel
     ``COARSER`` times as large round them (a sparse region, or a voxel the surface only grazes).
+    ``shifted``: from the grid shifted by half a voxel along every axis (a second, independent estimate:
+    a voxel holding two faces in one grid mostly holds one of them in the other).
     """
     cfg = config or SurfaceConfig()
     if not voxel_m > 0:
         raise InvalidInputError(f"voxel_m must be positive, got {voxel_m}")
     points = np.asarray(points, dtype=np.float64)
+    if shifted:
+        points = points + 0.5 * voxel_m
     spacing, normals, count = _voxel_statistics(points, voxel_m)
     sparse = count < cfg.min_points
     if sparse.any():
