@@ -13,7 +13,6 @@ from .directions import subset_clusters
 from .geometry import segment_lengths
 from .lines2d import detect
 from .map.linemap import LineMap
-from .map.tiles import point_segment_distance
 from .pipeline import MapView, register_undistorted
 from .points import map_gap_m, map_points
 from .priors import Prior
@@ -117,7 +116,7 @@ def _localize_undistorted(
     with timer("culling"):
         index = None
         if prior is not None and prior.position is not None and prior.radius_m is not None:
-            index = _seen_from(line_map, prior.position, prior.radius_m, camera, lines2d)
+            index = line_map.segments_near(prior.position, prior.radius_m + _reach(line_map, prior))
         view = map_view(line_map, index, config)
     if len(view.segments) < config.min_lines3d:
         reason = (
@@ -131,20 +130,9 @@ def _localize_undistorted(
     return dataclasses.replace(result, matches=matches)
 
 
-def _seen_from(
-    line_map: LineMap, position: np.ndarray, radius_m: float, camera: Camera, lines2d: np.ndarray
-) -> np.ndarray:
-    """Returns the (k,) int64 indices of the map segments a camera within ``radius_m`` of ``position`` could
-    see as long as the image's shortest segment: a segment of length L at distance d projects to at most
-    f L / d pixels, so it counts within ``radius_m + f L / shortest`` (a tight prior does not make the
-    camera see less far: a street photo sees 40 m)."""
-    shortest = max(float(segment_lengths(lines2d).min()), 1.0)
-    focal = max(camera.fx, camera.fy)
-    lengths = segment_lengths(line_map.segments)
+def _reach(line_map: LineMap, prior: Prior) -> float:
+    """Returns how far beyond the prior's ball map segments may still be seen: the map's diagonal, capped at
+    ten times the radius (a camera sees far, but a prior is given to bound the work)."""
     bounds = np.asarray(line_map.metadata["bounds"], dtype=np.float64)
-    reach = min(
-        focal * float(lengths.max(initial=0.0)) / shortest, float(np.linalg.norm(bounds[1] - bounds[0]))
-    )
-    near = line_map.segments_near(position, radius_m + reach)
-    distance = point_segment_distance(np.asarray(position, dtype=np.float64), line_map.segments[near])
-    return near[distance <= radius_m + focal * lengths[near] / shortest]
+    diagonal = float(np.linalg.norm(bounds[1] - bounds[0]))
+    return min(diagonal, 10.0 * float(prior.radius_m or 0.0))
