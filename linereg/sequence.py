@@ -208,21 +208,13 @@ def relocalize(
     radius_m: float,
     config: SequenceConfig,
 ) -> Registration:
-    """Returns the global Registration of undistorted (N, 4) segments, near ``predicted`` when given; a
-    success must also explain ``decide.min_explained_fraction`` of the lines, as a tracked fix must (the
-    decision's significance test asks only whether the pose is chance, and near a prediction the search
-    is small enough that a pose off by decimetres passes it)."""
+    """Returns the global Registration of undistorted (N, 4) segments, near ``predicted`` when given."""
     prior = None
     if predicted is not None:
         prior = Prior(
             cam_from_world=predicted, radius_m=radius_m, sigma_rot_deg=config.relocalize_sigma_rot_deg
         )
-    found = localize_segments(lines2d, line_map, camera, config.register, prior)
-    floor = config.register.decide.min_explained_fraction
-    if found.success and found.explained_fraction < floor:
-        reason = f"relocalized: the pose explains {100 * found.explained_fraction:.0f} % of the image's lines (< {100 * floor:.0f} %)"
-        return replace(found, success=False, reason=reason)
-    return found
+    return localize_segments(lines2d, line_map, camera, config.register, prior)
 
 
 def frames_alone(
