@@ -162,8 +162,9 @@ def decide(
     timer: StageTimer,
     space: SearchSpace,
 ) -> Registration:
-    """Returns the Registration of the best refined pose: ``success`` only when it has enough matches, more
-    than chance would give any of the poses the search examined (``space``: ``significance.py``), and every
+    """Returns the Registration of the best refined pose: ``success`` only when it has enough matches,
+    explains ``min_explained_fraction`` of the image, more than chance would give any of the poses the search
+    examined (``space``: ``significance.py``), and every
     distinct pose scores below ``(1 - margin)`` of it: the other poses found, and the best pose itself turned
     by small angles (``turned_rivals``), which the search need not have visited."""
     dc = config.decide
@@ -196,6 +197,8 @@ def decide(
         reason = "the best pose explains none of the image's lines"
     elif len(matches) < config.min_inliers:
         reason = f"the best pose matches {len(matches)} image segments, fewer than {config.min_inliers}"
+    elif explained < dc.min_explained_fraction:
+        reason = f"the best pose explains {100 * explained:.0f} % of the image's lines (< {100 * dc.min_explained_fraction:.0f} %)"
     elif nfa >= dc.max_log10_nfa:
         reason = (
             f"not significant: the best pose matches {len(matches)} of {len(image.segments)} image segments "
