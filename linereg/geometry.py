@@ -132,6 +132,11 @@ def segment_lengths(lines: np.ndarray) -> np.ndarray:
     return np.linalg.norm(lines[:, d:] - lines[:, :d], axis=1)
 
 
+def segment_angles(lines: np.ndarray) -> np.ndarray:
+    """Returns (N,) angles in [0, pi) of (N, 4) 2D segments (undirected)."""
+    return np.mod(np.arctan2(lines[:, 3] - lines[:, 1], lines[:, 2] - lines[:, 0]), np.pi)
+
+
 def segment_directions(lines: np.ndarray) -> np.ndarray:
     """Returns (N, d) unit directions (second endpoint minus first) of 2D or 3D segments."""
     d = lines.shape[1] // 2

@@ -164,9 +164,9 @@ def decide(
 ) -> Registration:
     """Returns the Registration of the best refined pose: ``success`` only when it has enough matches,
     explains ``min_explained_fraction`` of the image, more than chance would give any of the poses the search
-    examined (``space``: ``significance.py``), and every
-    distinct pose scores below ``(1 - margin)`` of it: the other poses found, and the best pose itself turned
-    by small angles (``turned_rivals``), which the search need not have visited."""
+    examined (``space``: ``significance.py``), and every distinct pose scores below ``(1 - margin)`` of it:
+    the other poses found, and the best pose itself turned by small angles (``turned_rivals``), which the
+    search need not have visited."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -332,7 +332,5 @@ def differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig)
     depth of the map seen from ``b``."""
     if rotation_error_deg(a[:3, :3], b[:3, :3]) > dc.distinct_angle_deg:
         return True
-    depth = lines3d.reshape(-1, 3) @ b[2, :3] + b[2, 3]
-    depth = depth[depth > 0]
-    scale = float(np.median(depth)) if len(depth) else 1.0
+    scale = depth_of(lines3d, b)
     return float(np.linalg.norm(camera_center(a) - camera_center(b))) > dc.distinct_fraction * scale

@@ -26,7 +26,7 @@ import numpy as np
 
 from .camera import Camera
 from .config import ScoreConfig
-from .geometry import segment_lengths
+from .geometry import segment_angles, segment_lengths
 
 CELLS_PER_RADIUS = 8  # the empty-area raster: cells of radius / 8, fine next to the radius, cheap
 GRID_PX = 24.0  # cells of the candidate grid of the pair test: speed only, the same pairs for any size
@@ -64,8 +64,7 @@ class ImageLines:
 def image_lines(lines2d: np.ndarray, camera: Camera, config: ScoreConfig) -> ImageLines:
     """Returns the image side of the score for (N, 4) undistorted pixel segments of an image of ``camera``."""
     lines2d = np.ascontiguousarray(lines2d, dtype=np.float64).reshape(-1, 4)
-    d = lines2d[:, 2:4] - lines2d[:, 0:2]
-    angles = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
+    angles = segment_angles(lines2d)
     radius = config.empty_radius_fraction * float(np.hypot(camera.width, camera.height))
     empty, cell = _empty_cells(lines2d, camera.width, camera.height, radius)
     ptr, items, grid_w = _segment_grid(lines2d, camera.width, camera.height, GRID_PX, config.distance_px)

@@ -29,8 +29,9 @@ import numpy as np
 
 from .camera import Camera
 from .config import RegisterConfig
-from .geometry import segment_lengths
+from .geometry import segment_angles, segment_lengths
 from .score import ImageLines
+from .search import transform_depths
 
 
 @dataclass(frozen=True)
@@ -70,11 +71,9 @@ def chance_probabilities(
     """Returns (K,) the probability that each of (K, 4) projected map segments, placed at a uniformly random
     offset in the image, explains some image segment (the background model above)."""
     projected = np.ascontiguousarray(projected, dtype=np.float64).reshape(-1, 4)
-    d = projected[:, 2:4] - projected[:, 0:2]
-    angles = np.mod(np.arctan2(d[:, 1], d[:, 0]), np.pi)
     area = _chance_areas(
-        image.lengths, image.angles, segment_lengths(projected), angles, distance_px, math.radians(angle_deg),
-        min_cover,
+        image.lengths, image.angles, segment_lengths(projected), segment_angles(projected), distance_px,
+        math.radians(angle_deg), min_cover,
     )  # fmt: skip
     return -np.expm1(-area / float(image.width * image.height))
 
@@ -91,7 +90,7 @@ def log10_tail(p: np.ndarray, k: int) -> float:
 
 def depth_of(segments: np.ndarray, cam_from_world: np.ndarray) -> float:
     """Returns the median depth (m) of the endpoints of (K, 6) world segments in front of a camera."""
-    z = segments.reshape(-1, 3) @ cam_from_world[2, :3] + cam_from_world[2, 3]
+    z = transform_depths(segments, cam_from_world)
     z = z[z > 0]
     return float(np.median(z)) if len(z) else 1.0
 
