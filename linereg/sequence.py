@@ -74,7 +74,9 @@ class SequenceConfig:
     relocalize_radius_m: float = 1.0
     max_relocalize_radius_m: float = 5.0
     relocalize_sigma_rot_deg: float = 5.0
-    relocalize_every: int = 5  # while lost, relocalize on every n-th frame (each costs 0.1 s to seconds)
+    # a frame after one without a fix is searched for near its prediction (relocalized): the first
+    # relocalize_every frames of a loss each, then every n-th (each costs 0.1 s to seconds)
+    relocalize_every: int = 5
     # without odometry after this many frames without a fix: global registration (no prior)
     global_after_frames: int = 10
     # without odometry, a random-walk prior between consecutive frames (never on unless asked)
@@ -237,9 +239,14 @@ def frames_alone(
         if k == 0 and prior is not None and prior.cam_from_world is not None:
             predicted, radius = prior.cam_from_world, prior.radius_m or config.relocalize_radius_m
         result = Registration(success=False, reason="not tried")
-        if predicted is not None and len(lines[k]) >= config.register.min_lines2d:
+        # a refinement finds the nearest basin, right only while the prediction is (the last frame's fix
+        # plus one step); after frames without a fix the frame is searched for near its prediction
+        # (relocalize: the best-scoring pose there, against its rivals)
+        follows = k == 0 or (fix is not None and fix[0] == k - 1)
+        if follows and predicted is not None and len(lines[k]) >= config.register.min_lines2d:
             result = refine_from(image, line_map, camera, predicted, radius, config)
-        if not result.success and (k - (fix[0] if fix else -1) - 1) % config.relocalize_every == 0:
+        lost = k - (fix[0] if fix else -1) - 1  # frames since the last fix
+        if not result.success and (lost < config.relocalize_every or lost % config.relocalize_every == 0):
             start = time.perf_counter()
             reloc = relocalize(lines[k], line_map, camera, predicted, radius, config)
             timings = {**reloc.timings, "relocalize": time.perf_counter() - start}

@@ -15,7 +15,8 @@ from linereg.geometry import invert, pose_errors
 from linereg.graph import from_pose3, relative_pose, to_pose3
 from linereg.map.linemap import LineMap
 from linereg.priors import Prior
-from linereg.sequence import FROM_NEIGHBOURS, SequenceConfig, localize_sequence
+from linereg.score import image_lines
+from linereg.sequence import FROM_NEIGHBOURS, SequenceConfig, frames_alone, localize_sequence
 from linereg.sim.synthetic import look_at, project_visible
 from linereg.tracking import Tracker, TrackingConfig, innovation_distance
 
@@ -103,6 +104,39 @@ def test_a_dropped_frame_is_bridged_with_a_larger_covariance(scene):
     rot, pos, _ = pose_errors(results[2].cam_from_world, truth[2])
     assert pos < 0.01 and rot < 0.2
     assert np.trace(results[2].covariance[3:, 3:]) > np.trace(results[1].covariance[3:, 3:])
+
+
+def test_a_frame_after_a_loss_is_searched_for_not_refined_from_its_prediction(scene):
+    # after a frame without a fix the prediction has drifted (here the odometry over the lost frame is off
+    # by 0.3 m): the next frame is relocalized near it (the best-scoring pose there, against its rivals),
+    # not refined into whatever basin the prediction lies in; the frame after a fix is refined (tracked)
+    line_map, truth, frames = scene
+    relative, _ = _odometry(truth)
+    relative[1] = relative[1].copy()
+    relative[1][:3, 3] += [0.3, 0.0, 0.0]
+    dropped = [*frames[:2], BLANK, *frames[3:]]
+    config = SequenceConfig()
+    results = localize_sequence(
+        dropped, line_map, CAMERA, relative, config=config, prior=Prior(cam_from_world=truth[0], radius_m=0.5)
+    )
+    images = [image_lines(f, CAMERA, config.register.score) for f in dropped]
+    covariances = [np.eye(6) * 1e-6 for _ in relative]
+    alone = frames_alone(
+        dropped,
+        images,
+        line_map,
+        CAMERA,
+        relative,
+        covariances,
+        config,
+        Prior(cam_from_world=truth[0], radius_m=0.5),
+    )
+    assert "relocalize" in alone[3].timings and "track" not in alone[3].timings
+    assert "track" in alone[4].timings
+    for k in (3, 4, 5):
+        assert alone[k].success and results[k].success, (k, alone[k].reason)
+        rot, pos, _ = pose_errors(results[k].cam_from_world, truth[k])
+        assert pos < 0.01 and rot < 0.2
 
 
 def test_sequence_bad_input_names_the_frame(scene):
