@@ -163,7 +163,7 @@ class _Grid:
     def __init__(self, lo: np.ndarray, hi: np.ndarray, voxel: float, dims: np.ndarray) -> None:
         self.lo, self.hi, self.voxel, self.dims = lo, hi, voxel, dims
         self.accumulator = np.zeros(int(np.prod(dims)), np.float32)
-        self.stamp = np.full(len(self.accumulator), -1, np.int64)
+        self.stamp = np.full(len(self.accumulator), -1, np.int32)  # ids of one search stay far below 2**31
         self.next_id = 0
 
     @classmethod
@@ -431,38 +431,69 @@ def _peaks(grid: _Grid, count: int) -> tuple[np.ndarray, np.ndarray]:
 @numba.njit(cache=True, nogil=True)
 def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
     """Returns ((<= n,) flat indices, their values) of the largest values of ``votes`` pooled by the max over
-    the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), unordered: a min-heap of n slots."""
+    the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), unordered: the n largest by (value,
+    then lower index first).
+
+    A pooled value is the vote of one voxel of its block, so only voxels with more votes than the n-th best
+    so far can raise one: every other voxel costs one read. Each pooled voxel is offered once, by the voxel
+    of its block that holds its maximum (the first of them in index order)."""
     X, Y, Z = votes.shape
     heap_v = np.full(n, -1.0, np.float64)
     heap_i = np.full(n, -1, np.int64)
-    for x in range(X):
-        for y in range(Y):
-            for z in range(Z):
-                v = votes[x, y, z]
-                for dx in range(2):
-                    for dy in range(2):
-                        for dz in range(2):
-                            if x >= dx and y >= dy and z >= dz:
-                                w = votes[x - dx, y - dy, z - dz]
-                                if w > v:
-                                    v = w
-                if v <= heap_v[0]:
-                    continue
-                heap_v[0], heap_i[0] = v, (x * Y + y) * Z + z
-                i = 0  # sift down
-                while True:
-                    a, b, s = 2 * i + 1, 2 * i + 2, i
-                    if a < n and heap_v[a] < heap_v[s]:
-                        s = a
-                    if b < n and heap_v[b] < heap_v[s]:
-                        s = b
-                    if s == i:
-                        break
-                    heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
-                    heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
-                    i = s
+    flat = votes.reshape(-1)
+    for v_index in range(flat.size):
+        w = flat[v_index]
+        # every pooled voxel it offers has an index >= its own: at a tie with the root, a later one loses
+        if w < heap_v[0] or (w == heap_v[0] and heap_i[0] >= 0 and v_index > heap_i[0]):
+            continue
+        x, rest = divmod(v_index, Y * Z)
+        y, z = divmod(rest, Z)
+        # the pooled voxels whose block holds this voxel: (x, y, z) + (0 or 1 on each axis)
+        for px in range(x, min(x + 2, X)):
+            for py in range(y, min(y + 2, Y)):
+                for pz in range(z, min(z + 2, Z)):
+                    # is (x, y, z) the first voxel of (px, py, pz)'s block holding its maximum?
+                    owner = True
+                    for dx in range(2):
+                        for dy in range(2):
+                            for dz in range(2):
+                                qx, qy, qz = px - dx, py - dy, pz - dz
+                                if qx < 0 or qy < 0 or qz < 0:
+                                    continue
+                                u = votes[qx, qy, qz]
+                                q = (qx * Y + qy) * Z + qz
+                                if u > w or (u == w and q < v_index):
+                                    owner = False
+                    if not owner:
+                        continue
+                    p = (px * Y + py) * Z + pz
+                    # the heap's root is its worst entry: least value, and of equal values the greater index
+                    if w < heap_v[0] or (w == heap_v[0] and p > heap_i[0] and heap_i[0] >= 0):
+                        continue
+                    heap_v[0], heap_i[0] = w, p
+                    i = 0  # sift down
+                    while True:
+                        a, b, s = 2 * i + 1, 2 * i + 2, i
+                        if a < n and _worse(heap_v[a], heap_i[a], heap_v[s], heap_i[s]):
+                            s = a
+                        if b < n and _worse(heap_v[b], heap_i[b], heap_v[s], heap_i[s]):
+                            s = b
+                        if s == i:
+                            break
+                        heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
+                        heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
+                        i = s
     keep = heap_i >= 0
     return heap_i[keep], heap_v[keep]
+
+
+@numba.njit(cache=True, nogil=True)
+def _worse(va: float, ia: int, vb: float, ib: int) -> bool:  # pragma: no cover - numba
+    """Returns True if heap entry a ranks below b: a smaller value, or an equal value at a greater index
+    (an empty slot, index -1 and value -1, ranks below every vote)."""
+    if va != vb:
+        return va < vb
+    return ia > ib
 
 
 def solve_locally(

@@ -1,13 +1,15 @@
-"""The search's local solve (``search.solve_locally``) and the one-to-one pairs it fits on."""
+"""The search: its local solve (``search.solve_locally``), the one-to-one pairs it fits on, and the
+peaks of its vote grids (``search._top_pooled``)."""
 
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, pose_errors, rotation_from_vector
 from linereg.score import image_lines, score_pose
-from linereg.search import solve_locally, transform_depths
+from linereg.search import _top_pooled, solve_locally, transform_depths
 from linereg.sim.synthetic import paper_scene
 
 
@@ -53,3 +55,37 @@ def test_the_local_solve_comes_back_through_clutter():
                 rot_deg, _, rel = pose_errors(out[0], truth)
                 back += rot_deg < 0.5 and rel < 0.01
     assert back >= 20, back
+
+
+def _pooled_brute_force(votes: np.ndarray) -> np.ndarray:
+    """The max over the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), by numpy."""
+    padded = np.pad(votes, ((1, 0), (1, 0), (1, 0)), constant_values=-np.inf)
+    X, Y, Z = votes.shape
+    blocks = [
+        padded[1 - dx : 1 - dx + X, 1 - dy : 1 - dy + Y, 1 - dz : 1 - dz + Z]
+        for dx in (0, 1)
+        for dy in (0, 1)
+        for dz in (0, 1)
+    ]
+    return np.max(blocks, axis=0)
+
+
+@pytest.mark.parametrize("kind", ["continuous", "ties", "sparse"])
+def test_top_pooled_returns_the_largest_pooled_votes_lower_index_first(kind):
+    rng = np.random.default_rng({"continuous": 0, "ties": 1, "sparse": 2}[kind])
+    for _ in range(10):
+        shape = tuple(int(v) for v in rng.integers(2, 25, 3))
+        if kind == "continuous":
+            votes = rng.random(shape)
+        elif kind == "ties":
+            votes = rng.integers(0, 4, shape).astype(np.float64)
+        else:
+            votes = (rng.random(shape) < 0.03) * rng.integers(1, 3, shape).astype(np.float64)
+        votes = votes.astype(np.float32)
+        n = int(rng.integers(1, 400))
+        index, value = _top_pooled(votes, n)
+        pooled = _pooled_brute_force(votes).ravel()
+        order = np.lexsort((np.arange(pooled.size), -pooled))[:n]  # most votes first, ties lower index first
+        got = np.lexsort((index, -value))
+        np.testing.assert_array_equal(index[got], order)
+        np.testing.assert_array_equal(value[got], pooled[order])
