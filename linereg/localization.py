@@ -65,14 +65,24 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
             points = map_points(segments, config.points, map_gap_m(segments, config.points))
             signatures = map_signatures(points, line_map.clusters.labels, line_map.clusters.directions)
             parts = line_map.visible_parts if _has_surfaces(line_map) else None
-            cached = (config.points, MapView(segments, line_map.clusters, points, signatures, parts=parts))
+            view = MapView(
+                segments, line_map.clusters, points, signatures, parts=parts, accuracy_m=line_map.accuracy_m
+            )
+            cached = (config.points, view)
             line_map.cache["view"] = cached
         return cached[1]
     segments = line_map.segments[index]
     clusters = subset_clusters(line_map.clusters, index, segment_lengths(segments))
     points = map_points(segments, config.points, map_gap_m(line_map.segments, config.points))
     signatures = map_signatures(points, clusters.labels, clusters.directions)
-    return MapView(segments, clusters, points, signatures, parts=_subset_parts(line_map, index))
+    return MapView(
+        segments,
+        clusters,
+        points,
+        signatures,
+        parts=_subset_parts(line_map, index),
+        accuracy_m=line_map.accuracy_m,
+    )
 
 
 def _has_surfaces(line_map: LineMap) -> bool:

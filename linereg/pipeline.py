@@ -83,6 +83,7 @@ class MapView:
     signatures: MapSignatures
     visible: np.ndarray | None = None
     parts: Callable[[Camera, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+    accuracy_m: float = 0.0  # how well the map places its lines (``LineMap.accuracy_m``; 0: exact)
 
 
 def register_undistorted(
@@ -218,7 +219,8 @@ def decide(
         cam_from_world=best.cam_from_world,
         matches=matches,
         num_inliers=len(matches),
-        covariance=best.covariance,
+        covariance=best.covariance
+        + map_floor(view.accuracy_m, depth_of(seen[order[0]][1], best.cam_from_world)),
         rms_px=best.rms_px,
         score=float(best.score.value),
         explained_fraction=float(explained),
@@ -228,6 +230,17 @@ def decide(
         alternative_scores=np.array([s for _, s in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
+
+
+def map_floor(accuracy_m: float, depth_m: float) -> np.ndarray:
+    """Returns the (6, 6) covariance (rotation rad, translation m) a pose inherits from its map's own
+    accuracy: a pose is known relative to the map's lines, which are ``accuracy_m`` off the world, all
+    alike along a facade (one frame's residuals cannot show it): ``accuracy_m`` in each translation axis
+    and ``accuracy_m / depth_m`` in each rotation axis (a shift of the lines seen at that depth). On the
+    demo courtyard (4.5 cm spacing) it brings the median chi-square of right fixes' true errors from 43.6
+    to 3.7 (6 degrees of freedom: 5.3 expected; docs/measurements.md)."""
+    rotation = (accuracy_m / max(depth_m, 1e-9)) ** 2
+    return np.diag([rotation] * 3 + [accuracy_m**2] * 3)
 
 
 def log10_nfa(

@@ -328,6 +328,15 @@ class LineMap:
         """
         return self.visibility().visible_parts(camera, cam_from_world, index)
 
+    @property
+    def accuracy_m(self) -> float:
+        """How well the map places its lines (m): the point spacing of the cloud it was built from (an edge
+        is placed to within about one spacing of where the scan's points end), 0 for a map of given segments
+        (its lines are taken as exact)."""
+        profile = self.metadata.get("profile") or {}
+        spacing = profile.get("spacing_m") if isinstance(profile, dict) else None
+        return float(spacing) if spacing is not None and np.isfinite(spacing) and spacing > 0 else 0.0
+
     def potentially_visible(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         """Returns (k,) int64 sorted rows of the segments that may be visible from some camera centre in
         the axis-aligned box [lo, hi] ((3,) each); conservative (never leaves out a segment visible from a
