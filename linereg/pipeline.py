@@ -219,8 +219,7 @@ def decide(
         cam_from_world=best.cam_from_world,
         matches=matches,
         num_inliers=len(matches),
-        covariance=best.covariance
-        + map_floor(view.accuracy_m, depth_of(seen[order[0]][1], best.cam_from_world)),
+        covariance=with_map_floor(best.covariance, view.accuracy_m, seen[order[0]][1], best.cam_from_world),
         rms_px=best.rms_px,
         score=float(best.score.value),
         explained_fraction=float(explained),
@@ -241,6 +240,17 @@ def map_floor(accuracy_m: float, depth_m: float) -> np.ndarray:
     to 3.7 (6 degrees of freedom: 5.3 expected; docs/measurements.md)."""
     rotation = (accuracy_m / max(depth_m, 1e-9)) ** 2
     return np.diag([rotation] * 3 + [accuracy_m**2] * 3)
+
+
+def with_map_floor(
+    covariance: np.ndarray, accuracy_m: float, seen: np.ndarray, cam_from_world: np.ndarray
+) -> np.ndarray:
+    """Returns a pose's (6, 6) covariance plus ``map_floor`` of a map placing its lines to ``accuracy_m``,
+    at the median depth of the (K, 6) world segments the pose sees (none: no rotation term)."""
+    if accuracy_m <= 0:
+        return covariance
+    depth = depth_of(seen, cam_from_world) if len(seen) else np.inf
+    return covariance + map_floor(accuracy_m, depth)
 
 
 def log10_nfa(

@@ -45,6 +45,7 @@ from .graph import (
 )
 from .localization import localize_segments
 from .map.linemap import LineMap
+from .pipeline import with_map_floor
 from .priors import Prior
 from .refine import refine_pose
 from .registration import Registration
@@ -116,7 +117,7 @@ def localize_sequence(
     if relative is None and config.smoothness:
         log.info("sequence: no odometry; a random-walk smoothness prior links consecutive frames")
     graph_start = time.perf_counter()
-    out = smooth(images, line_map.segments, cam, alone, relative, covariances, config)
+    out = smooth(images, line_map.segments, cam, alone, relative, covariances, config, line_map.accuracy_m)
     share = (time.perf_counter() - graph_start) / max(len(out), 1)
     log.debug("sequence: %.1f s alone, %.1f s graph", graph_start - start, share * len(out))
     return [replace(r, timings={**r.timings, "graph": share}) for r in out]
@@ -297,8 +298,11 @@ def smooth(
     relative: list[np.ndarray] | None,
     covariances: list[np.ndarray] | None,
     config: SequenceConfig,
+    accuracy_m: float = 0.0,
 ) -> list[Registration]:
-    """Returns the frames' Registrations after the graph (steps 2 and 3 of the module docstring)."""
+    """Returns the frames' Registrations after the graph (steps 2 and 3 of the module docstring);
+    ``accuracy_m``: how well the map places its lines (``LineMap.accuracy_m``), added to each frame's
+    reported covariance (``pipeline.with_map_floor``)."""
     links = _links(len(images), relative, covariances, config)
     poses = _initial(alone, links)
     rc = config.register
@@ -347,6 +351,7 @@ def smooth(
             links,
             relative is not None,
             config,
+            accuracy_m,
         )
         for k in range(len(images))
     ]
@@ -466,8 +471,10 @@ def _result(
     links: list[_Link],
     odometry: bool,
     config: SequenceConfig,
+    accuracy_m: float = 0.0,
 ) -> Registration:
-    """Returns frame k's Registration at its smoothed pose: a fix of its own lines, or from neighbours."""
+    """Returns frame k's Registration at its smoothed pose: a fix of its own lines, or from neighbours;
+    its covariance: the graph's marginal plus what the map's ``accuracy_m`` adds."""
     if k not in covariances:
         return alone
     rc = config.register
@@ -484,7 +491,7 @@ def _result(
         reason = f"{FROM_NEIGHBOURS}: the frame's own lines match {len(matches)} image segments ({100 * explained:.0f} % explained)"
     return replace(
         alone, success=not reason, reason=reason, cam_from_world=pose, matches=matches, num_inliers=len(matches),
-        covariance=covariances[k], rms_px=rms, score=float(score.value), explained_fraction=float(explained),
+        covariance=with_map_floor(covariances[k], accuracy_m, lines3d[matches[:, 1]], pose), rms_px=rms, score=float(score.value), explained_fraction=float(explained),
     )  # fmt: skip
 
 

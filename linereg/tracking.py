@@ -52,7 +52,7 @@ from .graph import (
     to_pose3,
 )
 from .map.linemap import LineMap
-from .pipeline import differs, turned_rival
+from .pipeline import differs, turned_rival, with_map_floor
 from .registration import Registration
 from .score import ImageLines, image_lines
 from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize, visible_mask
@@ -368,7 +368,8 @@ class Tracker:
         assert previous is not None and self._pose is not None
         self._velocity, self._lost = relative_pose(previous, self._pose), 0
         self._clear_window()
-        return replace(tracked, cam_from_world=self._pose, covariance=self._covariance())
+        seen = self.line_map.segments[tracked.matches[:, 1]]
+        return replace(tracked, cam_from_world=self._pose, covariance=self._reported(seen))
 
     def _fit(
         self, key: int, image: ImageLines, pose: np.ndarray, tolerance_px: float, sigma_px: float
@@ -402,7 +403,7 @@ class Tracker:
             success=False,
             reason=reason,
             cam_from_world=self._pose,
-            covariance=self._covariance(),
+            covariance=self._reported(np.zeros((0, 6))),
             timings=tracked.timings,
         )
 
@@ -473,6 +474,13 @@ class Tracker:
         self._k += 1
         self._keys += 1
         self._pose = from_pose3(self._isam.calculateEstimatePose3(frame_key(self._k)))
+
+    def _reported(self, seen: np.ndarray) -> np.ndarray:
+        """Returns the newest frame's covariance as reported: the graph's marginal (what the innovation
+        gate uses: consecutive frames share the map's error) plus what the map's own accuracy adds, seeing
+        the (K, 6) world segments ``seen`` (``pipeline.with_map_floor``)."""
+        assert self._pose is not None
+        return with_map_floor(self._covariance(), self.line_map.accuracy_m, seen, self._pose)
 
     def _covariance(self) -> np.ndarray:
         assert self._isam is not None

@@ -261,3 +261,24 @@ def test_without_odometry_frames_stand_alone_unless_smoothness_is_asked(scene):
     )
     assert smoothed[2].reason.startswith(FROM_NEIGHBOURS)
     assert pose_errors(smoothed[2].cam_from_world, truth[2])[1] < 0.3
+
+
+def test_reported_covariances_include_the_maps_accuracy(scene):
+    # the graph's marginals are relative to the map; a map placing its lines to 5 cm adds that to every
+    # reported pose (the tracker's innovation gate keeps the marginals alone: frames share the map's error)
+    line_map, truth, frames = scene
+    scanned = LineMap.from_segments(line_map.segments, profile={"spacing_m": 0.05})
+    relative, covariances = _odometry(truth)
+    prior = Prior(cam_from_world=truth[0], radius_m=0.5)
+    exact = localize_sequence(frames, line_map, CAMERA, relative, covariances, prior=prior)
+    floored = localize_sequence(frames, scanned, CAMERA, relative, covariances, prior=prior)
+    for a, b in zip(exact, floored, strict=True):
+        assert a.success and b.success
+        np.testing.assert_allclose(np.diag(b.covariance - a.covariance)[3:], 0.05**2, rtol=1e-6)
+    trackers = [Tracker(m, CAMERA) for m in (line_map, scanned)]
+    for t in trackers:
+        t.start_at(truth[0])
+    for k in range(1, len(frames)):
+        a, b = (t.step(frames[k], relative[k - 1]) for t in trackers)
+        assert a.success and b.success
+        np.testing.assert_allclose(np.diag(b.covariance - a.covariance)[3:], 0.05**2, rtol=1e-6)

@@ -160,7 +160,7 @@ def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str
         flush=True,
     )
     start = time.perf_counter()
-    smoothed = smooth(images, p["line_map"].segments, cam, alone, rel, cov, config)
+    smoothed = smooth(images, p["line_map"].segments, cam, alone, rel, cov, config, p["line_map"].accuracy_m)
     graph_s = (time.perf_counter() - start) / len(lines)
     print(f"  graph: {graph_s * len(lines):.1f} s", flush=True)
     rows = {
