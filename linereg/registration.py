@@ -17,10 +17,8 @@ class Registration:
         pose found when the answer is ambiguous: then ``alternatives`` holds its rivals).
     matches: (K, 2) int64 ``(i2d, j3d)``: for each matched image segment the map segment covering most of it.
     covariance: (6, 6) float64 from GTSAM marginals, (rotation rad, translation m) order, in the camera
-        (body) frame of the ``world_T_cam`` pose GTSAM optimises; NaN when unavailable. For one image's
-        registration (``localize``, ``register``) it includes what the map's own accuracy adds
-        (``pipeline.map_floor``; nothing for a map of given segments); the frames of a sequence or a
-        tracker report the graph's marginals alone (poses of one track share the map's error).
+        (body) frame of the ``world_T_cam`` pose GTSAM optimises, plus what the map's own accuracy adds
+        (``pipeline.map_floor``; nothing for a map of given segments); NaN when unavailable.
     rms_px: root mean square distance of the matched map points to their image lines.
     score: the pose's score (px): image line length the visible map explains, less what it predicts in
         empty image areas (``score.py``); explained_fraction: explained length / the image's line length.
