@@ -443,8 +443,8 @@ def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # 
     flat = votes.reshape(-1)
     for v_index in range(flat.size):
         w = flat[v_index]
-        # every pooled voxel it offers has an index >= its own: at a tie with the root, a later one loses
-        if w < heap_v[0] or (w == heap_v[0] and heap_i[0] >= 0 and v_index > heap_i[0]):
+        # every pooled voxel it offers has an index >= its own: none can beat the root if (w, v_index) does not
+        if not _worse(heap_v[0], heap_i[0], w, v_index):
             continue
         x, rest = divmod(v_index, Y * Z)
         y, z = divmod(rest, Z)
@@ -467,8 +467,7 @@ def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # 
                     if not owner:
                         continue
                     p = (px * Y + py) * Z + pz
-                    # the heap's root is its worst entry: least value, and of equal values the greater index
-                    if w < heap_v[0] or (w == heap_v[0] and p > heap_i[0] and heap_i[0] >= 0):
+                    if not _worse(heap_v[0], heap_i[0], w, p):  # the root is the heap's worst entry
                         continue
                     heap_v[0], heap_i[0] = w, p
                     i = 0  # sift down
