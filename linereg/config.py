@@ -309,6 +309,9 @@ class SearchConfig:
     # a rotation candidate from vanishing directions is off by up to about this: scoring and solving a peak
     # start at a tolerance that covers it
     rotation_slack_deg: float = 1.0
+    # rotations are voted in up to this many threads (as OpenCV may use: service workers one), each holding its
+    # own grids (2 x 64 MB per region): the same peaks on any count
+    max_threads: int = 4
     solve_rounds: int = 6  # local solve: match at a shrinking tolerance, re-solve the pose
     # without a prior the camera centres searched are the map's box grown by each of these fractions of its
     # largest extent on every side, each box voted on its own grid: fine near the map (photos of a mapped

@@ -8,8 +8,6 @@ from __future__ import annotations
 
 import logging
 import math
-import threading
-from collections.abc import Callable
 
 import cv2
 import numpy as np
@@ -19,6 +17,7 @@ from .config import LineDetectConfig
 from .errors import InvalidInputError
 from .geometry import segment_lengths
 from .lines2d_merge import merge_collinear
+from .threads import run_parallel
 
 log = logging.getLogger(__name__)
 
@@ -124,7 +123,7 @@ def lsd_segments(gray: np.ndarray, config: LineDetectConfig) -> np.ndarray:
     def run(k: int) -> None:
         found[k] = _lsd_band(small, scale, axis, (int(cuts[k]), int(cuts[k + 1])), overlap)
 
-    _run_parallel(run, n)
+    run_parallel(run, n)
     segments = np.concatenate(found)
     # OpenCV divides subsampled coordinates by the scale without the half-pixel shift of the resize,
     # which moves every edge by 0.5 / scale - 0.5 px towards the origin (0.21 px at 0.7); undo it.
@@ -162,32 +161,6 @@ def _lsd_band(small: np.ndarray, scale: float, axis: int, span: tuple[int, int],
     outside = (along[:, 0] < span[0]) & (along[:, 1] < span[0]) & (span[0] > 0)
     outside |= (along[:, 0] > span[1]) & (along[:, 1] > span[1]) & (span[1] < small.shape[axis])
     return segments[~outside]
-
-
-def _run_parallel(run: Callable[[int], None], n: int) -> None:
-    """Calls ``run(0) .. run(n - 1)``, all but the first in threads of their own when OpenCV may use more
-    than one (``cv2.getNumThreads()``; service workers are held to one), else in turn; re-raises errors.
-
-    Fresh threads rather than a pool: a pool's idle workers do not survive a fork into worker processes.
-    """
-    errors: list[BaseException] = []
-
-    def guarded(k: int) -> None:
-        try:
-            run(k)
-        except BaseException as e:  # re-raised in the caller's thread below
-            errors.append(e)
-
-    parallel = cv2.getNumThreads() > 1
-    threads = [threading.Thread(target=guarded, args=(k,), daemon=True) for k in range(1, n) if parallel]
-    for thread in threads:
-        thread.start()
-    for k in range(1 if parallel else n):
-        guarded(k)
-    for thread in threads:
-        thread.join()
-    if errors:
-        raise errors[0]
 
 
 def frame_margins(gray: np.ndarray, max_frac: float = 0.02, flat_std: float = 0.5) -> np.ndarray:

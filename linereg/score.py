@@ -220,14 +220,68 @@ def project_clipped(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((K, 4) projected segments cut to the image rectangle, (K,) int64 their rows in ``lines3d``).
 
-    Segments behind the camera, outside the image or not ``visible`` are left out.
+    Segments behind the camera, outside the image or not ``visible`` are left out. ``project_segments``,
+    ``clip_near`` and ``clip_to_image`` in one compiled pass (the search scores thousands of poses).
     """
-    projected, front = project_segments(lines3d, camera, cam_from_world, min_depth_m)
-    if visible is not None:
-        front &= visible
-    rows = np.flatnonzero(front)
-    clipped, inside = clip_to_image(projected[rows], camera.width, camera.height)
-    return clipped[inside], rows[inside]
+    lines3d = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
+    mask = np.ones(len(lines3d), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
+    T = np.ascontiguousarray(cam_from_world, dtype=np.float64)
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
+    return _project_clipped(
+        lines3d, T, intrinsics, float(camera.width), float(camera.height), min_depth_m, mask
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _project_clipped(
+    lines3d: np.ndarray,
+    T: np.ndarray,
+    intrinsics: np.ndarray,
+    width: float,
+    height: float,
+    near: float,
+    visible: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    out = np.empty((len(lines3d), 4))
+    rows = np.empty(len(lines3d), np.int64)
+    a, b = np.empty(3), np.empty(3)
+    p, d, lo, hi = np.empty(2), np.empty(2), np.array([-0.5, -0.5]), np.array([width - 0.5, height - 0.5])
+    n = 0
+    for m in range(len(lines3d)):
+        if not visible[m]:
+            continue
+        for i in range(3):
+            a[i] = T[i, 0] * lines3d[m, 0] + T[i, 1] * lines3d[m, 1] + T[i, 2] * lines3d[m, 2] + T[i, 3]
+            b[i] = T[i, 0] * lines3d[m, 3] + T[i, 1] * lines3d[m, 4] + T[i, 2] * lines3d[m, 5] + T[i, 3]
+        za, zb = a[2], b[2]
+        if za < near and zb < near:
+            continue
+        if za < near or zb < near:  # cut at the near plane (clip_near)
+            s = min(max((near - za) / (zb - za), 0.0), 1.0)
+            for i in range(3):
+                cut = a[i] + s * (b[i] - a[i])
+                if za < near:
+                    a[i] = cut
+                else:
+                    b[i] = cut
+        za, zb = max(a[2], near), max(b[2], near)
+        p[0], p[1] = fx * a[0] / za + cx, fy * a[1] / za + cy
+        d[0], d[1] = fx * b[0] / zb + cx - p[0], fy * b[1] / zb + cy - p[1]
+        t0, t1 = 0.0, 1.0  # Liang-Barsky on [-0.5, size - 0.5] (clip_to_image)
+        for axis in range(2):
+            if d[axis] != 0.0:
+                e1, e2 = (lo[axis] - p[axis]) / d[axis], (hi[axis] - p[axis]) / d[axis]
+                t0, t1 = max(t0, min(e1, e2)), min(t1, max(e1, e2))
+            elif p[axis] < lo[axis] or p[axis] > hi[axis]:
+                t0, t1 = 1.0, 0.0
+        if not t1 > t0:
+            continue
+        out[n, 0], out[n, 1] = p[0] + t0 * d[0], p[1] + t0 * d[1]
+        out[n, 2], out[n, 3] = p[0] + t1 * d[0], p[1] + t1 * d[1]
+        rows[n] = m
+        n += 1
+    return out[:n].copy(), rows[:n].copy()
 
 
 def clip_to_image(segments: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:

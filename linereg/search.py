@@ -27,6 +27,7 @@ from .geometry import camera_center, invert, line_coefficients, make_cam_from_wo
 from .line_factor import LineProjection
 from .points import Points
 from .score import ImageLines, Score, grow, score_pose
+from .threads import run_parallel, thread_count
 
 log = logging.getLogger(__name__)
 
@@ -76,26 +77,38 @@ def search(
     and those grouped by arm directions (``map_signatures``);
     camera: undistorted; visible: (M,) bool of segments that take part in the score (None: all).
     """
-    grids = []
+    boxes = []
     for lo, hi in regions:
         lo, hi = np.asarray(lo, dtype=np.float64), np.asarray(hi, dtype=np.float64)
         voxel = float(np.cbrt(np.prod(np.maximum(hi - lo, 1e-9)) / config.voxels))
-        grids.append(_Grid(lo, hi, voxel, np.maximum(np.ceil((hi - lo) / voxel).astype(np.int64), 1)))
-    stats = SearchStats(voxels=sum(int(np.prod(g.dims)) for g in grids), voxel_m=grids[0].voxel)
-    fine = _Grid.empty(config.fine_voxels)
-    peaks: list[tuple[float, int, np.ndarray, float]] = []
-    for r, R in enumerate(rotations):
-        rays = _pair_rays(image_pts, map_pts, signatures, camera, R, config)
-        stats.rays += len(rays[0])
-        stats.per_rotation.append(len(rays[0]))
-        for grid in grids:
-            # coarse votes over the whole region, then finer ones around the best coarse voxels
-            grid.vote(rays, map_pts.positions, image_pts.weight)
-            for centre, _ in zip(*_peaks(grid, config.coarse_peaks), strict=True):
-                fine.place(centre - config.fine_span * grid.voxel, centre + config.fine_span * grid.voxel)
-                fine.vote(rays, map_pts.positions, image_pts.weight)
-                centres, votes = _peaks(fine, 1)
-                peaks += [(float(v), r, c, fine.voxel) for v, c in zip(votes, centres, strict=True)]
+        boxes.append((lo, hi, voxel, np.maximum(np.ceil((hi - lo) / voxel).astype(np.int64), 1)))
+    stats = SearchStats(voxels=sum(int(np.prod(b[3])) for b in boxes), voxel_m=boxes[0][2])
+    # the rotations are voted in threads (the kernels release the GIL), each thread on grids of its own; a
+    # rotation's peaks do not depend on which thread voted it
+    workers = thread_count(min(config.max_threads, len(rotations)))
+    by_rotation: list[list[tuple[float, int, np.ndarray, float]]] = [[] for _ in rotations]
+    rays_of = np.zeros(len(rotations), np.int64)
+
+    def vote(worker: int) -> None:
+        grids = [_Grid(*box) for box in boxes]
+        fine = _Grid.empty(config.fine_voxels)
+        for r in range(worker, len(rotations), workers):
+            rays = _pair_rays(image_pts, map_pts, signatures, camera, rotations[r], config)
+            rays_of[r] = len(rays[0])
+            for grid in grids:
+                # coarse votes over the whole region, then finer ones around the best coarse voxels
+                grid.vote(rays, map_pts.positions, image_pts.weight)
+                for centre, _ in zip(*_peaks(grid, config.coarse_peaks), strict=True):
+                    fine.place(centre - config.fine_span * grid.voxel, centre + config.fine_span * grid.voxel)
+                    fine.vote(rays, map_pts.positions, image_pts.weight)
+                    centres, votes = _peaks(fine, 1)
+                    by_rotation[r] += [
+                        (float(v), r, c, fine.voxel) for v, c in zip(votes, centres, strict=True)
+                    ]
+
+    run_parallel(vote, workers)
+    stats.rays, stats.per_rotation = int(rays_of.sum()), [int(n) for n in rays_of]
+    peaks = [p for found_r in by_rotation for p in found_r]
     # a symmetric building gives every rotation as many votes as the truth: each fine peak gets one quick
     # solve (pairs at a tolerance spanning its voxel and the rotation's error, one pose fit), is scored at
     # the score's own tolerance, and the best of those are solved fully
@@ -225,7 +238,7 @@ def _pair_rays(
     return k, m, lam, np.ascontiguousarray(directions)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _direction_at(d: np.ndarray, qx: float, qy: float, K: np.ndarray) -> tuple[float, float]:
     """Returns the unit image direction at pixel (qx, qy) of a line along camera-frame direction d (3,)."""
     xn, yn = (qx - K[0, 2]) / K[0, 0], (qy - K[1, 2]) / K[1, 1]
@@ -236,7 +249,7 @@ def _direction_at(d: np.ndarray, qx: float, qy: float, K: np.ndarray) -> tuple[f
     return vx / norm, vy / norm
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _ray(
     k: int,
     Xm: np.ndarray,
@@ -275,7 +288,7 @@ def _ray(
     return 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pairs_kernel(
     q: np.ndarray,
     q_arms: np.ndarray,
@@ -374,7 +387,7 @@ def _pairs_kernel(
     return out_k[:count].copy(), out_m[:count].copy(), out_lam[:count].copy()
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _vote_rays(
     k: np.ndarray,
     m: np.ndarray,

@@ -1,14 +1,17 @@
-"""The search: its local solve (``search.solve_locally``), the one-to-one pairs it fits on, and the
-peaks of its vote grids (``search._top_pooled``)."""
+"""The search: its local solve (``search.solve_locally``), the one-to-one pairs it fits on, the peaks of
+its vote grids (``search._top_pooled``), the projection it scores with, and its threads."""
 
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
 
+import linereg
+from linereg.camera import Camera
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, pose_errors, rotation_from_vector
-from linereg.score import image_lines, score_pose
+from linereg.score import clip_to_image, image_lines, project_clipped, project_segments, score_pose
 from linereg.search import _top_pooled, solve_locally, transform_depths
 from linereg.sim.synthetic import paper_scene
 
@@ -89,3 +92,39 @@ def test_top_pooled_returns_the_largest_pooled_votes_lower_index_first(kind):
         got = np.lexsort((index, -value))
         np.testing.assert_array_equal(index[got], order)
         np.testing.assert_array_equal(value[got], pooled[order])
+
+
+def test_the_compiled_projection_is_the_three_numpy_stages(rng):
+    """``project_clipped`` (one compiled pass) = ``project_segments`` (near-plane cut) + ``visible`` +
+    ``clip_to_image``: the same rows, the same pixels to rounding, segments crossing the near plane and the
+    image border included."""
+    camera = Camera(fx=500.0, fy=510.0, cx=320.0, cy=240.0, width=640, height=480)
+    for _ in range(50):
+        lines3d = rng.normal(0.0, 5.0, (400, 6))
+        lines3d[:, [2, 5]] += rng.normal(3.0, 3.0)  # many cross z = 0
+        pose = make_cam_from_world(rotation_from_vector(rng.normal(0.0, 0.3, 3)), rng.normal(0.0, 1.0, 3))
+        visible = rng.random(len(lines3d)) > 0.2
+        projected, front = project_segments(lines3d, camera, pose, 0.1)
+        rows = np.flatnonzero(front & visible)
+        clipped, inside = clip_to_image(projected[rows], camera.width, camera.height)
+        got, got_rows = project_clipped(lines3d, camera, pose, 0.1, visible)
+        assert np.array_equal(got_rows, rows[inside])
+        np.testing.assert_allclose(got, clipped[inside], rtol=0.0, atol=1e-6)
+
+
+def test_the_search_finds_the_same_poses_on_one_thread_or_two():
+    """Rotations are voted in threads when OpenCV may use more than one: the answer is the same either way."""
+    scene = paper_scene(np.random.default_rng(3), 100, 0.3, 0.3, 2.0)
+    before = cv2.getNumThreads()
+    try:
+        out = []
+        for threads in (1, 2):
+            cv2.setNumThreads(threads)
+            out.append(linereg.register(scene.lines2d, scene.lines3d, scene.camera))
+    finally:
+        cv2.setNumThreads(before)
+    one, two = out
+    assert one.success == two.success and one.score == two.score and one.reason == two.reason
+    assert np.array_equal(one.cam_from_world, two.cam_from_world)
+    assert np.array_equal(one.alternatives, two.alternatives)
+    assert np.array_equal(one.alternative_scores, two.alternative_scores)
