@@ -23,7 +23,7 @@ import numpy as np
 
 from .camera import Camera
 from .config import ScoreConfig, SearchConfig
-from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_from_vector
+from .geometry import camera_center, invert, line_coefficients, make_cam_from_world
 from .line_factor import LineProjection
 from .points import Points
 from .score import ImageLines, Score, grow, score_pose
@@ -571,21 +571,57 @@ def pose_from_pairs(
     projection = LineProjection.build(
         line_coefficients(lines2d[pairs[:, 0]]), lines3d[pairs[:, 1]], camera, min_depth_m=1e-3
     )
-    world_from_cam = invert(cam_from_world)
+    p = projection
+    world_from_cam = _gauss_newton(
+        p.points_world, p.a, p.b, p.c, p.min_depth_m, invert(cam_from_world), iterations
+    )
+    return None if world_from_cam is None else invert(world_from_cam)
+
+
+@numba.njit(cache=True, nogil=True)
+def _gauss_newton(
+    points: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    c: np.ndarray,
+    min_depth: float,
+    world_from_cam: np.ndarray,
+    iterations: int,
+) -> np.ndarray | None:  # pragma: no cover - numba
+    """``pose_from_pairs``'s iterations on a ``LineProjection``'s arrays (its ``evaluate``, with the normal
+    equations summed in place): returns the (4, 4) world_from_cam, or None for a singular system."""
+    T = world_from_cam.copy()
+    J = np.empty(6)
     for _ in range(iterations):
-        points = projection.points_cam(world_from_cam[:3, :3], world_from_cam[:3, 3])
-        e, J = projection.evaluate(points, jacobian=True)
-        assert J is not None
-        w = np.sqrt(np.minimum(1.0, 2.0 / np.maximum(np.abs(e), 1e-9)))
-        A, b = J * w[:, None], -e * w
-        H = A.T @ A
+        H, rhs = np.zeros((6, 6)), np.zeros(6)
+        for i in range(len(points)):
+            d0, d1, d2 = points[i, 0] - T[0, 3], points[i, 1] - T[1, 3], points[i, 2] - T[2, 3]
+            X = d0 * T[0, 0] + d1 * T[1, 0] + d2 * T[2, 0]  # camera frame: (x - t) @ R
+            Y = d0 * T[0, 1] + d1 * T[1, 1] + d2 * T[2, 1]
+            Z = d0 * T[0, 2] + d1 * T[1, 2] + d2 * T[2, 2]
+            inv_z = 1.0 / max(Z, min_depth)
+            num = a[i] * X + b[i] * Y
+            e = num * inv_z + c[i]
+            g0, g1 = a[i] * inv_z, b[i] * inv_z
+            g2 = 0.0 if Z < min_depth else -num * inv_z * inv_z
+            J[0], J[1], J[2] = g1 * Z - g2 * Y, g2 * X - g0 * Z, g0 * Y - g1 * X
+            J[3], J[4], J[5] = -g0, -g1, -g2
+            w2 = min(1.0, 2.0 / max(abs(e), 1e-9))  # Huber at 2 px, squared weight
+            for r in range(6):
+                rhs[r] -= w2 * J[r] * e
+                for q in range(6):
+                    H[r, q] += w2 * J[r] * J[q]
         if np.linalg.cond(H) > 1e12:
             return None
-        step = np.linalg.solve(H, A.T @ b)
+        step = np.linalg.solve(H, rhs)
         delta = np.eye(4)
-        delta[:3, :3] = rotation_from_vector(step[:3])
+        angle = np.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
+        if angle >= 1e-12:  # Rodrigues (geometry.rotation_from_vector)
+            k0, k1, k2 = step[0] / angle, step[1] / angle, step[2] / angle
+            K = np.array([[0.0, -k2, k1], [k2, 0.0, -k0], [-k1, k0, 0.0]])
+            delta[:3, :3] = np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
         delta[:3, 3] = step[3:]  # gtsam's Pose3 retract to first order (translation in the body frame)
-        world_from_cam = world_from_cam @ delta
+        T = T @ delta
         if np.linalg.norm(step) < 1e-7:
             break
-    return invert(world_from_cam)
+    return T
