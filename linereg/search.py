@@ -91,20 +91,17 @@ def search(
 
     def vote(worker: int) -> None:
         grids = [_Grid(*box) for box in boxes]
-        fine = _Grid.empty(config.fine_voxels)
+        fine = _FineGrids(config.coarse_peaks, config.fine_voxels)
         for r in range(worker, len(rotations), workers):
             rays = _pair_rays(image_pts, map_pts, signatures, camera, rotations[r], config)
             rays_of[r] = len(rays[0])
             for grid in grids:
                 # coarse votes over the whole region, then finer ones around the best coarse voxels
                 grid.vote(rays, map_pts.positions, image_pts.weight)
-                for centre, _ in zip(*_peaks(grid, config.coarse_peaks), strict=True):
-                    fine.place(centre - config.fine_span * grid.voxel, centre + config.fine_span * grid.voxel)
-                    fine.vote(rays, map_pts.positions, image_pts.weight)
-                    centres, votes = _peaks(fine, 1)
-                    by_rotation[r] += [
-                        (float(v), r, c, fine.voxel) for v, c in zip(votes, centres, strict=True)
-                    ]
+                centres, _ = _peaks(grid.votes, grid.lo, grid.voxel, config.coarse_peaks)
+                half = config.fine_span * grid.voxel
+                for centre, v, size in fine.vote(centres, half, rays, map_pts, image_pts):
+                    by_rotation[r].append((v, r, centre, size))
 
     run_parallel(vote, workers)
     stats.rays, stats.per_rotation = int(rays_of.sum()), [int(n) for n in rays_of]
@@ -179,16 +176,6 @@ class _Grid:
         self.stamp = np.full(len(self.accumulator), -1, np.int32)  # ids of one search stay far below 2**31
         self.next_id = 0
 
-    @classmethod
-    def empty(cls, side: int) -> _Grid:
-        """Returns a cubic grid of side**3 voxels to be ``place``d."""
-        return cls(np.zeros(3), np.ones(3), 1.0 / side, np.full(3, side, dtype=np.int64))
-
-    def place(self, lo: np.ndarray, hi: np.ndarray) -> None:
-        """Moves the (cubic) grid onto the box [lo, hi]."""
-        self.lo, self.hi = lo, hi
-        self.voxel = float(np.max(hi - lo)) / int(self.dims[0])
-
     def vote(self, rays: tuple[np.ndarray, ...], positions: np.ndarray, weight: np.ndarray) -> None:
         """Clears the votes, then lets every ray ``(k, m, lambda_max, direction)`` vote where it crosses."""
         self.accumulator[:] = 0.0
@@ -202,6 +189,45 @@ class _Grid:
     @property
     def votes(self) -> np.ndarray:
         return self.accumulator.reshape(self.dims)
+
+
+class _FineGrids:
+    """Cubic grids of ``side``**3 voxels round up to ``count`` coarse peaks, voted in one pass over the rays
+    (a ray is tested against each box; each grid keeps its own votes and stamps, as a ``_Grid`` would)."""
+
+    def __init__(self, count: int, side: int) -> None:
+        self.side = side
+        self.accumulator = np.zeros((count, side**3), np.float32)
+        self.stamp = np.full((count, side**3), -1, np.int32)
+        self.next_id = 0
+
+    def vote(
+        self,
+        centres: np.ndarray,
+        half: float,
+        rays: tuple[np.ndarray, ...],
+        map_pts: Points,
+        image_pts: Points,
+    ) -> list[tuple[np.ndarray, float, float]]:
+        """Returns (centre, votes, voxel size) of the best voxel (``_peaks``) of the grid spanning
+        ``centre +- half`` round each (B, 3) centre, for those with votes."""
+        n = len(centres)
+        lo = np.ascontiguousarray(centres - half, dtype=np.float64).reshape(-1, 3)
+        hi = np.ascontiguousarray(centres + half, dtype=np.float64).reshape(-1, 3)
+        voxel = np.max(hi - lo, axis=1) / self.side
+        dims = np.full(3, self.side, dtype=np.int64)
+        self.accumulator[:n] = 0.0
+        k, m, lam_max, direction = rays
+        _vote_boxes(
+            k, m, lam_max, direction, map_pts.positions, image_pts.weight, lo, hi, voxel, dims,
+            self.accumulator, self.stamp, self.next_id,
+        )  # fmt: skip
+        self.next_id += int(k.max()) + 1 if len(k) else 0
+        out = []
+        for b in range(n):
+            best, votes = _peaks(self.accumulator[b].reshape(dims), lo[b], float(voxel[b]), 1)
+            out += [(c, float(v), float(voxel[b])) for c, v in zip(best, votes, strict=True)]
+        return out
 
 
 def _pair_rays(
@@ -419,11 +445,57 @@ def _vote_rays(
         )
 
 
-def _peaks(grid: _Grid, count: int) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((<= count, 3) world centres, their votes) of the grid's voxels with the most votes, 3
-    voxels apart, after pooling votes over 2 x 2 x 2 neighbourhoods (the rays of one camera meet within a
-    voxel or two)."""
-    votes = grid.votes
+@numba.njit(cache=True, nogil=True)
+def _vote_boxes(
+    k: np.ndarray,
+    m: np.ndarray,
+    lam_max: np.ndarray,
+    direction: np.ndarray,
+    X: np.ndarray,
+    weight: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    voxel: np.ndarray,
+    dims: np.ndarray,
+    accumulator: np.ndarray,
+    stamp: np.ndarray,
+    first_id: int,
+) -> None:  # pragma: no cover - numba
+    """``_vote_rays`` into each of the grids over boxes [lo[b], hi[b]] of voxels ``voxel[b]`` (rows of
+    ``accumulator`` and ``stamp``); a ray whose stretch stays outside a box's circumscribed sphere skips that
+    box's exact test (it cannot cross the box), so every grid gets the votes ``_vote_rays`` would give it."""
+    centre = 0.5 * (lo + hi)
+    radius2 = np.empty(len(lo))
+    for b in range(len(lo)):  # (half diagonal)^2, with room for rounding
+        half = 0.5 * (hi[b] - lo[b])
+        radius2[b] = (half[0] ** 2 + half[1] ** 2 + half[2] ** 2) * (1.0 + 1e-9) + 1e-12
+    for p in range(len(k)):
+        Xm, ray, far = X[m[p]], direction[k[p]], lam_max[p]
+        for b in range(len(lo)):
+            cx, cy, cz = Xm[0] - centre[b, 0], Xm[1] - centre[b, 1], Xm[2] - centre[b, 2]
+            lam = min(max(cx * ray[0] + cy * ray[1] + cz * ray[2], 0.0), far)  # nearest along the stretch
+            dx, dy, dz = cx - lam * ray[0], cy - lam * ray[1], cz - lam * ray[2]
+            if dx * dx + dy * dy + dz * dz > radius2[b]:
+                continue
+            _ray(
+                first_id + k[p],
+                Xm,
+                ray,
+                far,
+                weight[k[p]],
+                lo[b],
+                hi[b],
+                voxel[b],
+                dims,
+                accumulator[b],
+                stamp[b],
+            )
+
+
+def _peaks(votes: np.ndarray, lo: np.ndarray, voxel: float, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((<= count, 3) world centres, their votes) of the voxels with the most ``votes`` (a grid with
+    lower corner ``lo`` and cubic voxels of ``voxel`` m), 3 voxels apart, after pooling votes over 2 x 2 x 2
+    neighbourhoods (the rays of one camera meet within a voxel or two)."""
     top, values = _top_pooled(np.ascontiguousarray(votes), 64 * count)
     order = np.lexsort((top, -values))  # most votes first, ties in voxel order
     top, values = top[order], values[order]
@@ -435,7 +507,7 @@ def _peaks(grid: _Grid, count: int) -> tuple[np.ndarray, np.ndarray]:
             if len(kept) == count:
                 break
     kept_cells = np.array(kept, dtype=np.int64).reshape(-1, 3)
-    centres = grid.lo + (kept_cells + 0.5) * grid.voxel
+    centres = lo + (kept_cells + 0.5) * voxel
     pooled = {int(t): float(v) for t, v in zip(top, values, strict=True)}
     flat = [int(np.ravel_multi_index(tuple(cell), votes.shape)) for cell in kept_cells]
     return centres, np.array([pooled[f] for f in flat])

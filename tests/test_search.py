@@ -1,7 +1,8 @@
 """The search: its local solve (``search.solve_locally``), the one-to-one pairs it fits on, the peaks of
-its vote grids (``search._top_pooled``), the projection it scores with, and its threads."""
+its vote grids (``search._top_pooled``) and its fine grids, the projection it scores with, its threads."""
 
 from dataclasses import replace
+from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -12,7 +13,7 @@ from linereg.camera import Camera
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, pose_errors, rotation_from_vector
 from linereg.score import clip_to_image, image_lines, project_clipped, project_segments, score_pose
-from linereg.search import _top_pooled, solve_locally, transform_depths
+from linereg.search import _FineGrids, _Grid, _peaks, _top_pooled, solve_locally, transform_depths
 from linereg.sim.synthetic import paper_scene
 
 
@@ -128,3 +129,33 @@ def test_the_search_finds_the_same_poses_on_one_thread_or_two():
     assert np.array_equal(one.cam_from_world, two.cam_from_world)
     assert np.array_equal(one.alternatives, two.alternatives)
     assert np.array_equal(one.alternative_scores, two.alternative_scores)
+
+
+def test_the_fine_grids_get_the_votes_of_one_grid_each(rng):
+    """``_FineGrids`` votes all peaks' boxes in one pass, skipping a box a ray's stretch cannot reach: each
+    box gets exactly the votes of its own ``_Grid``, rays grazing its corners included."""
+    side, n_points = 16, 40
+    positions = rng.uniform(-5.0, 5.0, (300, 3))
+    directions = rng.normal(size=(n_points, 3))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    k = np.sort(rng.integers(0, n_points, 5000))
+    m = rng.integers(0, len(positions), len(k))
+    rays = (k, m, rng.uniform(0.5, 12.0, len(k)), directions)
+    image_pts = SimpleNamespace(weight=rng.choice([1.0, 2.0], n_points))
+    map_pts = SimpleNamespace(positions=positions)
+    centres = rng.uniform(-4.0, 4.0, (6, 3))
+    half = 1.5
+    fine = _FineGrids(len(centres), side)
+    for _ in range(2):  # the stamps of one pass never hide votes of the next
+        peaks = fine.vote(centres, half, rays, map_pts, image_pts)
+    expected = []
+    for b, centre in enumerate(centres):
+        lo, hi = centre - half, centre + half
+        grid = _Grid(lo, hi, float(np.max(hi - lo)) / side, np.full(3, side, dtype=np.int64))
+        grid.vote(rays, positions, image_pts.weight)
+        np.testing.assert_array_equal(fine.accumulator[b], grid.accumulator)
+        best, votes = _peaks(grid.votes, grid.lo, grid.voxel, 1)
+        expected += [(c, float(v), grid.voxel) for c, v in zip(best, votes, strict=True)]
+    assert len(peaks) == len(expected) > 0
+    for (c, v, size), (ce, ve, se) in zip(peaks, expected, strict=True):
+        assert np.array_equal(c, ce) and v == ve and size == se
