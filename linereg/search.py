@@ -302,11 +302,14 @@ def _ray(
     if lam1 <= lam0:
         return 0
     ny, nz = dims[1], dims[2]
+    # samples every half voxel: lambda = s voxel / 2, in voxel units from the grid's corner
+    inv = 1.0 / voxel
+    ox, oy, oz = (Xm[0] - lo[0]) * inv, (Xm[1] - lo[1]) * inv, (Xm[2] - lo[2]) * inv
+    rx, ry, rz = 0.5 * ray[0], 0.5 * ray[1], 0.5 * ray[2]
     for s in range(int(lam0 / (0.5 * voxel)) + 1, int(lam1 / (0.5 * voxel)) + 1):
-        lam = s * 0.5 * voxel
-        ix = min(max(int((Xm[0] - lam * ray[0] - lo[0]) / voxel), 0), dims[0] - 1)
-        iy = min(max(int((Xm[1] - lam * ray[1] - lo[1]) / voxel), 0), ny - 1)
-        iz = min(max(int((Xm[2] - lam * ray[2] - lo[2]) / voxel), 0), nz - 1)
+        ix = min(max(int(ox - s * rx), 0), dims[0] - 1)
+        iy = min(max(int(oy - s * ry), 0), ny - 1)
+        iz = min(max(int(oz - s * rz), 0), nz - 1)
         v = (ix * ny + iy) * nz + iz
         if stamp[v] != k:
             stamp[v] = k
