@@ -6,7 +6,8 @@ the fix checks); add the frame to iSAM2 with its line-projection factor and a ``
 odometry with its covariance, or the constant-velocity model with ``velocity_sigma_*``); read the pose and
 its marginal covariance back. A frame failing the checks is a loss: with odometry it gets the predicted
 pose from the graph (``success=False``, reason "from neighbours ..."); a relocalization then runs, near the
-prediction (a ``Prior``), or globally after ``global_after_frames`` lost frames without odometry. The graph
+prediction (a ``Prior``), or after ``global_after_frames`` lost frames without odometry in the ball the
+camera can have reached since its last fix (``max_speed_m_s`` and timestamps given), else globally. The graph
 is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
 A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
 graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
@@ -51,8 +52,10 @@ from .graph import (
     step_covariance,
     to_pose3,
 )
+from .localization import localize_segments
 from .map.linemap import LineMap
 from .pipeline import differs, turned_rival, with_map_floor
+from .priors import Prior
 from .registration import Registration
 from .score import ImageLines, image_lines
 from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize, visible_mask
@@ -90,6 +93,12 @@ class TrackingConfig:
     # tracked frames), independent of the track, lands on it (``pipeline.differs`` says no); one landing
     # elsewhere replaces the track, unconfirmed too. False: a global relocalization is claimed at once.
     confirm_global: bool = True
+    # the camera's top speed (m/s; None: unknown). Without odometry, after ``global_after_frames`` lost
+    # frames, a relocalization then searches only the ball the camera can have reached since its last fix
+    # (``relocalize_radius_m`` + speed x the time since, from the frames' timestamps), at any rotation, and
+    # is claimed as one near the prediction is: a copy of the scene beyond that reach (the courtyard's twin)
+    # cannot be the answer. Without timestamps, or once the ball holds the whole map, it is global.
+    max_speed_m_s: float | None = None
     relinearize_threshold: float = 0.01
     # window alignment of coasting frames (``align``): at most this many of the window's frames are scored
     # (evenly spread; cost only: a window's frames see much the same); 0: no window alignment
@@ -105,6 +114,11 @@ class Tracker:
         self.line_map = line_map
         self.camera = camera
         self.config = config or TrackingConfig()
+        speed = self.config.max_speed_m_s
+        if speed is not None and not (math.isfinite(speed) and speed > 0):
+            raise InvalidInputError(
+                f"TrackingConfig.max_speed_m_s must be a positive number or None, got {speed}"
+            )
         self._cam = camera.undistorted()
         self.event = "none"
         self.frames = 0  # frames stepped
@@ -122,6 +136,7 @@ class Tracker:
         self._lost = 0
         self._explained: list[float] = []  # explained shares of the last fixes
         self._unconfirmed: int | None = None  # frames since an unconfirmed global relocalization, or None
+        self._fix: tuple[float, np.ndarray] | None = None  # (timestamp, centre) of the last claimed fix
         self._clear_window()
 
     def _clear_window(self) -> None:
@@ -185,27 +200,61 @@ class Tracker:
                 doubt = self._doubt(tracked, predicted, step, cov)
                 added = self._add(image, tracked, step, cov)
                 doubt = self._confirm(lines, image, added) or doubt
-                return added if not doubt else replace(added, success=False, reason=doubt)
+                if doubt:
+                    return replace(added, success=False, reason=doubt)
+                return self._claimed(added, stamp)
         self._lost += 1
         if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % cfg.relocalize_every == 0:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
-            found = self._relocalize(lines, near, radius)
+            ball = self._reach(stamp) if near is None else None
+            found = self._relocalize(lines, near, radius, ball)
             if found.success:
                 self.event = "initialized" if self._pose is None else "relocalized"
                 previous, consecutive = self._pose, self._lost == 1
-                self._start(image, found, independent=near is None)
+                self._start(image, found, independent=near is None and ball is None)
                 if previous is not None and consecutive:  # the motion since the last frame is known
                     self._velocity = relative_pose(previous, found.cam_from_world)
                 if self._unconfirmed is not None:
                     return replace(found, success=False, reason=self._unconfirmed_reason())
-                return found
+                return self._claimed(found, stamp)
         # only odometry holds coasting frames together (a constant-velocity guess does not): a window
         return self._coast(image if relative is not None else None, tracked, predicted, step, cov)
 
-    def _relocalize(self, lines: np.ndarray, near: np.ndarray | None, radius: float) -> Registration:
-        """Returns the Registration of (N, 4) undistorted segments, registered near ``near`` or globally."""
+    def _claimed(self, result: Registration, stamp: float | None) -> Registration:
+        """Returns a claimed fix, noting when and where it was (the reach of ``max_speed_m_s``)."""
+        if stamp is not None:
+            self._fix = (stamp, camera_center(result.cam_from_world))
+        return result
+
+    def _reach(self, stamp: float | None) -> tuple[np.ndarray, float] | None:
+        """Returns ((3,) centre, radius m) of the ball the camera can have reached since its last claimed
+        fix at ``max_speed_m_s``, or None (no speed, timestamps or fix; or a ball holding the whole map)."""
+        speed = self.config.max_speed_m_s
+        if speed is None or stamp is None or self._fix is None:
+            return None
+        when, centre = self._fix
+        radius = self.config.sequence.relocalize_radius_m + speed * max(stamp - when, 0.0)
+        ends = self.line_map.segments.reshape(-1, 3)
+        far = float(
+            np.linalg.norm(np.maximum(np.abs(ends.min(axis=0) - centre), np.abs(ends.max(axis=0) - centre)))
+        )
+        return None if radius >= far else (centre, radius)
+
+    def _relocalize(
+        self,
+        lines: np.ndarray,
+        near: np.ndarray | None,
+        radius: float,
+        ball: tuple[np.ndarray, float] | None = None,
+    ) -> Registration:
+        """Returns the Registration of (N, 4) undistorted segments, registered near ``near``, else in a
+        ``ball`` ((3,) centre, radius m) at any rotation, else globally."""
         start = time.perf_counter()
-        found = relocalize(lines, self.line_map, self._cam, near, radius, self.config.sequence)
+        if near is None and ball is not None:
+            prior = Prior(position=ball[0], radius_m=ball[1])
+            found = localize_segments(lines, self.line_map, self._cam, self.config.sequence.register, prior)
+        else:
+            found = relocalize(lines, self.line_map, self._cam, near, radius, self.config.sequence)
         return replace(found, timings={**found.timings, "relocalize": time.perf_counter() - start})
 
     def _confirm(self, lines: np.ndarray, image: ImageLines, added: Registration) -> str:

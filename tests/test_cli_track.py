@@ -69,3 +69,13 @@ def test_track_bad_odometry_is_one_line(files, tmp_path, capsys):
     code = main([str(a) for a in [*argv, "--odometry", bad, "--tum", tmp_path / "out.tum"]])
     err = capsys.readouterr().err
     assert code == 2 and "8 finite numbers" in err and "Traceback" not in err
+
+
+def test_track_takes_a_top_speed_and_refuses_a_bad_one(files, tmp_path, capsys):
+    argv = ["track", "--map", files / "scene.linemap", "--camera", files / "camera.json", files / "frames"]
+    argv += ["--tum", tmp_path / "out.tum"]
+    assert main([str(a) for a in [*argv, "--max-speed", "2.5"]]) == 0, capsys.readouterr().err
+    assert (tmp_path / "out.tum").is_file()
+    assert main([str(a) for a in [*argv[:-1], tmp_path / "other.tum", "--max-speed", "-1"]]) != 0
+    assert "--max-speed" in capsys.readouterr().err
+    assert not (tmp_path / "other.tum").exists()

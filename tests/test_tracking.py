@@ -1,11 +1,13 @@
 """Tracking's trust: a global relocalization is claimed only once an independent one agrees; a fix from a
-guessed prediction must pass the global decision's turn test."""
+guessed prediction must pass the global decision's turn test; a top speed bounds where a lost camera is."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from test_sequence import CAMERA, _scene
 
+from linereg.errors import InvalidInputError
 from linereg.geometry import pose_errors
 from linereg.map.linemap import LineMap
 from linereg.sim.synthetic import look_at, project_visible
@@ -49,3 +51,34 @@ def test_a_fix_from_a_guess_must_pass_the_turn_test():
         assert r.success == odometry
         if not odometry:
             assert tracker.event == "predicted" and "ambiguous: the fix turned" in r.reason
+
+
+def test_after_a_long_loss_a_top_speed_keeps_the_relocalization_within_reach():
+    """Two copies of a scene 30 m apart: after a blackout longer than ``global_after_frames`` a global
+    relocalization cannot tell them apart, but the camera cannot have gone 30 m in a second: with
+    ``max_speed_m_s`` and timestamps it searches the ball it can have reached and claims the right copy."""
+    one, truth, _ = _scene(12)
+    lines3d = np.r_[one.segments, one.segments + np.array([30.0, 0.0, 0.0, 30.0, 0.0, 0.0])]
+    line_map = LineMap.from_segments(lines3d)
+    frames = [project_visible(lines3d, CAMERA, T)[0] for T in truth]
+    blank = np.zeros((0, 4))
+    for speed in (None, 2.0):
+        tracker = Tracker(line_map, CAMERA, TrackingConfig(max_speed_m_s=speed))
+        tracker.start_at(truth[0])
+        assert tracker.step(frames[0], timestamp=0.0).success
+        for k in range(1, 11):  # 1 s without lines: lost for longer than global_after_frames (10)
+            assert not tracker.step(blank, timestamp=0.1 * k).success
+        r = tracker.step(frames[11], timestamp=1.1)
+        if speed is None:  # global: the copies are twins
+            assert not r.success
+        else:
+            assert r.success and tracker.event == "relocalized", r.reason
+            assert pose_errors(r.cam_from_world, truth[11])[1] < 1e-3
+            assert tracker.step(frames[11], timestamp=1.2).success  # and tracks on, claimed
+
+
+def test_a_top_speed_must_be_positive():
+    line_map, _, _ = _scene(1)
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(InvalidInputError, match="max_speed_m_s"):
+            Tracker(line_map, CAMERA, TrackingConfig(max_speed_m_s=bad))

@@ -11,8 +11,9 @@ odometry simulated from the ground truth the same way.
 Rows: ``odometry`` (dead reckoning from the true first pose), ``per-frame`` (each frame by its own lines:
 refined from its prediction or relocalized near it; ``localize_sequence``'s first step), ``smoothed`` (the
 graph), ``tracking`` (``Tracker.step`` with odometry), ``tracking-cv`` (no odometry: constant velocity,
-relocalization). ATE / RPE are evo's APE / RPE (translation part, RMSE, no alignment, delta 1 frame) over
-the frames each row poses; ``posed`` counts frames with a pose (success, or from neighbours); ``wrong``
+relocalization), ``tracking-reach`` (tracking-cv knowing the camera's top speed, ``--max-speed``: after a
+long loss it relocalizes within reach of its last fix). ATE / RPE are evo's APE / RPE
+(translation part, RMSE, no alignment, delta 1 frame) over the frames each row poses; ``posed`` counts frames with a pose (success, or from neighbours); ``wrong``
 counts frames claiming success farther than ``--max-pos-m`` / ``--max-rot-deg`` from the truth; ``within``
 is the share of ALL frames posed within ``--good-pos-m`` / ``--good-rot-deg``. With ``--global-every N``
 every N-th frame is also localized globally, alone (``linereg.localize``): its ATE on those frames beside
@@ -45,6 +46,13 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--max-rot-deg", type=float, default=5.0, help="... or turned more than this")
     parser.add_argument("--good-pos-m", type=float, default=0.1, help="'within': this close to the truth")
     parser.add_argument("--good-rot-deg", type=float, default=2.0, help="... and this little turned")
+    parser.add_argument(
+        "--max-speed",
+        type=float,
+        default=2.0,
+        help="the camera's top speed for the tracking-reach row (TrackingConfig.max_speed_m_s; default 2: "
+        "walking and handheld cameras; 0: no such row)",
+    )
     parser.set_defaults(func=run)
 
 
@@ -172,8 +180,11 @@ def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str
     }
     rows["per-frame"]["seconds_per_frame"] = alone_s + detect_s
     rows["smoothed"]["seconds_per_frame"] = alone_s + detect_s + graph_s
-    for name, odometry in (("tracking", True), ("tracking-cv", False)):
-        results, steps, events, aligned = _track(p, odometry)
+    tracked = [("tracking", True, None), ("tracking-cv", False, None)]
+    if args.max_speed:
+        tracked.append(("tracking-reach", False, args.max_speed))
+    for name, odometry, speed in tracked:
+        results, steps, events, aligned = _track(p, odometry, speed)
         rows[name] = _row_of(results, truth, args) | _timing(steps, events, results, p)
         rows[name]["window_alignments"] = int(aligned.sum())
         rows[name]["align_step_s_median"] = float(np.median(steps[aligned])) if aligned.any() else None
@@ -220,13 +231,15 @@ def _row(
     }  # fmt: skip
 
 
-def _track(p: dict[str, Any], odometry: bool) -> tuple[list, np.ndarray, list[str], np.ndarray]:
+def _track(
+    p: dict[str, Any], odometry: bool, max_speed: float | None
+) -> tuple[list, np.ndarray, list[str], np.ndarray]:
     """Returns (Registrations, step seconds, events, (K,) bool: the step ran a window alignment) of a
-    Tracker started at the true first pose (as the batch rows are), stepping through every frame from its
-    image."""
-    from ..tracking import Tracker
+    Tracker (``max_speed_m_s``: ``max_speed``) started at the true first pose (as the batch rows are),
+    stepping through every frame from its image."""
+    from ..tracking import Tracker, TrackingConfig
 
-    tracker = Tracker(p["line_map"], p["camera"])
+    tracker = Tracker(p["line_map"], p["camera"], TrackingConfig(max_speed_m_s=max_speed))
     tracker.start_at(p["truth"][0])
     results, steps, events, aligned = [], [], [], []
     for k, frame in enumerate(p["frames"]):
@@ -358,6 +371,7 @@ def _plot(path: Path, title: str, truth: np.ndarray, rows: dict[str, np.ndarray]
         "smoothed": ("tab:blue", 1.5),
         "tracking": ("tab:green", 1.0),
         "tracking-cv": ("tab:purple", 0.8),
+        "tracking-reach": ("tab:brown", 0.8),
     }
     for name, xyz in rows.items():
         colour, width = style.get(name, ("grey", 1.0))
@@ -379,11 +393,11 @@ def _plot(path: Path, title: str, truth: np.ndarray, rows: dict[str, np.ndarray]
 def _print(name: str, rows: dict[str, Any], global_start: dict[str, Any]) -> None:
     print(f"\n{name}")
     print(
-        f"{'row':<12} {'posed':>6} {'success':>7} {'wrong':>5} {'within':>6} {'ATE m':>7} {'ATE deg':>7} {'RPE m':>7} {'RPE deg':>7}"
+        f"{'row':<14} {'posed':>6} {'success':>7} {'wrong':>5} {'within':>6} {'ATE m':>7} {'ATE deg':>7} {'RPE m':>7} {'RPE deg':>7}"
     )
     for row_name, r in rows.items():
         print(
-            f"{row_name:<12} {r['posed']:6.1%} {r['success']:7.1%} {r['wrong']:5d} {r['within']:6.1%} {r['ate_m']:7.3f} {r['ate_deg']:7.2f} {r['rpe_m']:7.3f} {r['rpe_deg']:7.2f}"
+            f"{row_name:<14} {r['posed']:6.1%} {r['success']:7.1%} {r['wrong']:5d} {r['within']:6.1%} {r['ate_m']:7.3f} {r['ate_deg']:7.2f} {r['rpe_m']:7.3f} {r['rpe_deg']:7.2f}"
         )
     for row_name, r in rows.items():
         extra = {

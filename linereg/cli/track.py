@@ -47,6 +47,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tum", type=Path, required=True, help="write the posed frames as a TUM trajectory")
     p.add_argument("--out", type=Path, help="also write one JSON record per frame")
     p.add_argument("--smooth", action="store_true", help="one graph over all frames instead of live tracking")
+    p.add_argument(
+        "--max-speed",
+        type=float,
+        metavar="M_S",
+        help="the camera's top speed (m/s): after a long loss without odometry, relocalize within its reach "
+        "since the last fix instead of over the whole map",
+    )
     p.set_defaults(func=run)
 
 
@@ -55,6 +62,8 @@ def run(args: argparse.Namespace) -> int:
     from ..map.linemap import LineMap, check_map_file
 
     check_output_file("--tum", args.tum)
+    if args.max_speed is not None and not (np.isfinite(args.max_speed) and args.max_speed > 0):
+        raise InvalidInputError(f"--max-speed must be a positive number of m/s, got {args.max_speed}")
     if args.out:
         check_output_file("--out", args.out)
     check_map_file(args.map)
@@ -69,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     if args.smooth:
         results, events = _smooth(list(frames), line_map, cameras, relative), None
     else:
-        results, events = _track(frames, line_map, cameras, relative, stamps)
+        results, events = _track(frames, line_map, cameras, relative, stamps, args.max_speed)
     return _write(args, stamps, results, events)
 
 
@@ -118,11 +127,11 @@ def odometry_steps(times: np.ndarray, cam_from_odom: np.ndarray, stamps: list[fl
     return [a @ np.linalg.inv(b) for a, b in itertools.pairwise(poses)]
 
 
-def _track(frames, line_map, camera, relative, stamps):
-    from ..tracking import Tracker
+def _track(frames, line_map, camera, relative, stamps, max_speed=None):
+    from ..tracking import Tracker, TrackingConfig
     from .progress import Progress
 
-    tracker = Tracker(line_map, camera)
+    tracker = Tracker(line_map, camera, TrackingConfig(max_speed_m_s=max_speed))
     results, events = [], []
     with Progress(len(stamps), "frames") as progress:
         for k, frame in enumerate(frames):
