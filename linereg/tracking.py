@@ -189,7 +189,11 @@ class Tracker:
         predicted, step, cov = self._predict(relative, stamp)
         radius = cfg.max_relocalize_radius_m
         tracked = Registration(success=False, reason="no pose yet")
-        if predicted is not None and self._pose is not None:
+        if len(lines) < cfg.register.min_lines2d:  # no fix can come of it: not refined (nor culled for)
+            tracked = Registration(
+                success=False, reason=f"{len(lines)} line segments (< {cfg.register.min_lines2d})"
+            )
+        elif predicted is not None and self._pose is not None:
             radius = min(cfg.relocalize_radius_m * (1 + self._lost), cfg.max_relocalize_radius_m)
             # without odometry the motion is a guess: standing still competes with constant velocity
             starts = [predicted] if relative is not None else [predicted, self._pose]

@@ -16,9 +16,9 @@ straight). A segment is left out only when all its pieces are hidden, each by on
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
+import numba
 import numpy as np
 
 from ..camera import Camera
@@ -145,32 +145,10 @@ class Visibility:
         polygons, normals = self._occluder_set()
         ends, owner = self._piece_set()
         cfg = self.config
-        margin = cfg.pvs_margin_m
-        open_ = np.ones(len(owner), dtype=bool)
-        for poly, n in zip(polygons, normals, strict=True):
-            side_box = (corners - poly[0]) @ n
-            if not ((side_box > margin).all() or (side_box < -margin).all()):
-                continue
-            sign = 1.0 if side_box[0] > 0 else -1.0
-            cand = np.flatnonzero(open_)
-            e = ends[cand]  # (c, 2, 3)
-            side = sign * ((e - poly[0]) @ n)  # (c, 2): the box side is positive
-            # a piece is hidden only as far behind the occluder as the ray test of one camera would hide
-            # it (``_unoccluded``: its tolerance at the farthest the piece is from the box), else a camera
-            # in the box could see what the set leaves out: the gap along a ray is at least the gap
-            # across the plane
-            far = np.linalg.norm(e[:, :, None, :] - corners[None, None], axis=-1).max(axis=(1, 2))
-            behind = np.maximum(margin, cfg.depth_tolerance_m + cfg.depth_tolerance_fraction * far)
-            hidden = (side < -behind[:, None]).all(1)
-            cand, e, side = cand[hidden], e[hidden], side[hidden]
-            if len(cand) == 0:
-                continue
-            sb = sign * side_box  # (8,) positive
-            # crossing of corner c -> end e with the plane: c + (e - c) sb / (sb - se)
-            w = sb[None, None, :] / (sb[None, None, :] - side[:, :, None])  # (c, 2, 8)
-            x = corners[None, None] + w[..., None] * (e[:, :, None, :] - corners[None, None])
-            inside = _in_convex(x.reshape(len(cand), -1, 3), poly, n).all(axis=1)
-            open_[cand[inside]] = False
+        open_ = _open_pieces(
+            corners, lo, hi, polygons, normals, ends, cfg.pvs_margin_m, cfg.depth_tolerance_m,
+            cfg.depth_tolerance_fraction,
+        )  # fmt: skip
         return np.unique(owner[open_])
 
     def _occluder_set(self) -> tuple[np.ndarray, np.ndarray]:
@@ -292,14 +270,101 @@ def _quads(v: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     return np.concatenate(polys).reshape(-1, 4, 3)
 
 
-def _in_convex(x: np.ndarray, poly: np.ndarray, n: np.ndarray) -> np.ndarray:
-    """Returns (..., P) bool: do points (..., P, 3) on the plane of the convex (4, 3) polygon (normal n) lie
-    inside it (edges of zero length, a triangle's repeated vertex, are skipped)?"""
-    inside = np.ones(x.shape[:-1], dtype=bool)
-    for k in range(4):
-        edge = poly[(k + 1) % 4] - poly[k]
-        if edge @ edge < 1e-18:
+@numba.njit(cache=True, nogil=True)
+def _open_pieces(
+    corners: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    polygons: np.ndarray,
+    normals: np.ndarray,
+    ends: np.ndarray,
+    margin: float,
+    tolerance_m: float,
+    tolerance_fraction: float,
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns (N,) bool: the (N, 2, 3) pieces no single convex occluder (polygons (Q, 4, 3), unit normals
+    (Q, 3)) hides from every point of the box [lo, hi] (its (8, 3) ``corners``).
+
+    An occluder hides a piece when the box lies more than ``margin`` on one side of its plane, the piece
+    behind it by more than the ray test's tolerance (``_unoccluded``: ``tolerance_m`` + ``tolerance_fraction``
+    x the farthest the piece is from the box, at least ``margin``), and the 16 crossings of the plane by the
+    lines from the box corners to the piece ends lie inside the polygon (the crossing of any line from the
+    box to the piece then does: central projection keeps segments straight and the polygon is convex)."""
+    n_pieces = len(ends)
+    open_ = np.ones(n_pieces, np.bool_)
+    side_box = np.empty(8)
+    inward = np.empty((4, 3))
+    edge_tol = np.empty(4)
+    use = np.empty(4, np.bool_)
+    for q in range(len(polygons)):
+        poly, n = polygons[q], normals[q]
+        above = below = True
+        for c in range(8):
+            side_box[c] = (
+                (corners[c, 0] - poly[0, 0]) * n[0] + (corners[c, 1] - poly[0, 1]) * n[1]
+                + (corners[c, 2] - poly[0, 2]) * n[2]
+            )  # fmt: skip
+            above &= side_box[c] > margin
+            below &= side_box[c] < -margin
+        if not (above or below):
             continue
-        inward = np.cross(n, edge)  # points into a counter-clockwise polygon (about n)
-        inside &= (x - poly[k]) @ inward >= -1e-9 * math.sqrt(edge @ edge)
-    return inside
+        sign = 1.0 if side_box[0] > 0 else -1.0
+        for k in range(4):  # inward edge normals of the (counter-clockwise about n) polygon
+            e0 = poly[(k + 1) % 4, 0] - poly[k, 0]
+            e1 = poly[(k + 1) % 4, 1] - poly[k, 1]
+            e2 = poly[(k + 1) % 4, 2] - poly[k, 2]
+            length2 = e0 * e0 + e1 * e1 + e2 * e2
+            use[k] = length2 >= 1e-18  # a triangle's repeated vertex: no edge
+            inward[k, 0] = n[1] * e2 - n[2] * e1
+            inward[k, 1] = n[2] * e0 - n[0] * e2
+            inward[k, 2] = n[0] * e1 - n[1] * e0
+            edge_tol[k] = -1e-9 * np.sqrt(length2)
+        floor = max(margin, tolerance_m)
+        for i in range(n_pieces):
+            if not open_[i]:
+                continue
+            s0 = sign * (
+                (ends[i, 0, 0] - poly[0, 0]) * n[0]
+                + (ends[i, 0, 1] - poly[0, 1]) * n[1]
+                + (ends[i, 0, 2] - poly[0, 2]) * n[2]
+            )
+            s1 = sign * (
+                (ends[i, 1, 0] - poly[0, 0]) * n[0]
+                + (ends[i, 1, 1] - poly[0, 1]) * n[1]
+                + (ends[i, 1, 2] - poly[0, 2]) * n[2]
+            )
+            if not (s0 < -floor and s1 < -floor):
+                continue
+            far = 0.0
+            for j in range(2):
+                d2 = 0.0
+                for a in range(3):
+                    r = max(abs(ends[i, j, a] - lo[a]), abs(ends[i, j, a] - hi[a]))
+                    d2 += r * r
+                far = max(far, np.sqrt(d2))
+            behind = max(margin, tolerance_m + tolerance_fraction * far)
+            if not (s0 < -behind and s1 < -behind):
+                continue
+            inside = True
+            for j in range(2):
+                se = s0 if j == 0 else s1
+                for c in range(8):
+                    if not inside:
+                        break
+                    sb = sign * side_box[c]
+                    w = sb / (sb - se)
+                    x0 = corners[c, 0] + w * (ends[i, j, 0] - corners[c, 0])
+                    x1 = corners[c, 1] + w * (ends[i, j, 1] - corners[c, 1])
+                    x2 = corners[c, 2] + w * (ends[i, j, 2] - corners[c, 2])
+                    for k in range(4):
+                        if use[k]:
+                            dot = (
+                                (x0 - poly[k, 0]) * inward[k, 0] + (x1 - poly[k, 1]) * inward[k, 1]
+                                + (x2 - poly[k, 2]) * inward[k, 2]
+                            )  # fmt: skip
+                            if dot < edge_tol[k]:
+                                inside = False
+                                break
+            if inside:
+                open_[i] = False
+    return open_
