@@ -220,8 +220,10 @@ def project_clipped(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((K, 4) projected segments cut to the image rectangle, (K,) int64 their rows in ``lines3d``).
 
-    Segments behind the camera, outside the image or not ``visible`` are left out. ``project_segments``,
-    ``clip_near`` and ``clip_to_image`` in one compiled pass (the search scores thousands of poses).
+    Segments behind the camera, outside the image (Liang-Barsky on the rectangle from the outer edge of the
+    first pixel to that of the last, [-0.5, width - 0.5]) or not ``visible`` are left out:
+    ``project_segments`` (its near-plane cut) and the clip in one compiled pass (the search scores thousands
+    of poses).
     """
     lines3d = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
     mask = np.ones(len(lines3d), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
@@ -268,7 +270,7 @@ def _project_clipped(
         za, zb = max(a[2], near), max(b[2], near)
         p[0], p[1] = fx * a[0] / za + cx, fy * a[1] / za + cy
         d[0], d[1] = fx * b[0] / zb + cx - p[0], fy * b[1] / zb + cy - p[1]
-        t0, t1 = 0.0, 1.0  # Liang-Barsky on [-0.5, size - 0.5] (clip_to_image)
+        t0, t1 = 0.0, 1.0  # Liang-Barsky on [-0.5, size - 0.5]
         for axis in range(2):
             if d[axis] != 0.0:
                 e1, e2 = (lo[axis] - p[axis]) / d[axis], (hi[axis] - p[axis]) / d[axis]
@@ -282,25 +284,6 @@ def _project_clipped(
         rows[n] = m
         n += 1
     return out[:n].copy(), rows[:n].copy()
-
-
-def clip_to_image(segments: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((N, 4) segments cut to the image rectangle, (N,) bool some part inside) (Liang-Barsky).
-
-    The rectangle runs from the outer edge of the first pixel to that of the last, [-0.5, width - 0.5].
-    """
-    a, d = segments[:, 0:2], segments[:, 2:4] - segments[:, 0:2]
-    lo, hi = np.array([-0.5, -0.5]), np.array([width - 0.5, height - 0.5])
-    inside_a = (a >= lo) & (a <= hi)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t1, t2 = (lo - a) / d, (hi - a) / d
-    enter = np.where(d != 0, np.minimum(t1, t2), np.where(inside_a, -np.inf, np.inf))
-    leave = np.where(d != 0, np.maximum(t1, t2), np.where(inside_a, np.inf, -np.inf))
-    t0 = np.maximum(enter.max(axis=1), 0.0)
-    t1_ = np.minimum(leave.min(axis=1), 1.0)
-    keep = t1_ > t0
-    t0, t1_ = np.where(keep, t0, 0.0), np.where(keep, t1_, 0.0)  # dropped rows: finite, never used
-    return np.c_[a + t0[:, None] * d, a + t1_[:, None] * d], keep
 
 
 # ---------------------------------------------------------------------------------------------- kernels

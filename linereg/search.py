@@ -100,7 +100,7 @@ def search(
                 grid.vote(rays, map_pts.positions, image_pts.weight)
                 centres, _ = _peaks(grid.votes, grid.lo, grid.voxel, config.coarse_peaks)
                 half = config.fine_span * grid.voxel
-                for centre, v, size in fine.vote(centres, half, rays, map_pts, image_pts):
+                for centre, v, size in fine.vote(centres, half, rays, map_pts.positions, image_pts.weight):
                     by_rotation[r].append((v, r, centre, size))
 
     run_parallel(vote, workers)
@@ -206,8 +206,8 @@ class _FineGrids:
         centres: np.ndarray,
         half: float,
         rays: tuple[np.ndarray, ...],
-        map_pts: Points,
-        image_pts: Points,
+        positions: np.ndarray,
+        weight: np.ndarray,
     ) -> list[tuple[np.ndarray, float, float]]:
         """Returns (centre, votes, voxel size) of the best voxel (``_peaks``) of the grid spanning
         ``centre +- half`` round each (B, 3) centre, for those with votes."""
@@ -219,8 +219,8 @@ class _FineGrids:
         self.accumulator[:n] = 0.0
         k, m, lam_max, direction = rays
         _vote_boxes(
-            k, m, lam_max, direction, map_pts.positions, image_pts.weight, lo, hi, voxel, dims,
-            self.accumulator, self.stamp, self.next_id,
+            k, m, lam_max, direction, positions, weight, lo, hi, voxel, dims, self.accumulator,
+            self.stamp, self.next_id,
         )  # fmt: skip
         self.next_id += int(k.max()) + 1 if len(k) else 0
         out = []

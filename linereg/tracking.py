@@ -189,7 +189,8 @@ class Tracker:
         predicted, step, cov = self._predict(relative, stamp)
         radius = cfg.max_relocalize_radius_m
         tracked = Registration(success=False, reason="no pose yet")
-        if len(lines) < cfg.register.min_lines2d:  # no fix can come of it: not refined (nor culled for)
+        enough = len(lines) >= cfg.register.min_lines2d
+        if not enough:  # no fix can come of it: not refined (nor culled for)
             tracked = Registration(
                 success=False, reason=f"{len(lines)} line segments (< {cfg.register.min_lines2d})"
             )
@@ -208,7 +209,7 @@ class Tracker:
                     return replace(added, success=False, reason=doubt)
                 return self._claimed(added, stamp)
         self._lost += 1
-        if len(lines) >= cfg.register.min_lines2d and (self._lost - 1) % cfg.relocalize_every == 0:
+        if enough and (self._lost - 1) % cfg.relocalize_every == 0:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
             ball = self._reach(stamp) if near is None else None
             found = self._relocalize(lines, near, radius, ball)

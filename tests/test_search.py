@@ -2,7 +2,6 @@
 its vote grids (``search._top_pooled``) and its fine grids, the projection it scores with, its threads."""
 
 from dataclasses import replace
-from types import SimpleNamespace
 
 import cv2
 import numpy as np
@@ -12,9 +11,9 @@ import linereg
 from linereg.camera import Camera
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, pose_errors, rotation_from_vector
-from linereg.score import clip_to_image, image_lines, project_clipped, project_segments, score_pose
+from linereg.score import image_lines, project_clipped, project_segments, score_pose
 from linereg.search import _FineGrids, _Grid, _peaks, _top_pooled, solve_locally, transform_depths
-from linereg.sim.synthetic import paper_scene
+from linereg.sim.synthetic import clip_to_box, paper_scene
 
 
 def test_one_to_one_takes_each_segment_once_longest_cover_first(rng):
@@ -96,9 +95,9 @@ def test_top_pooled_returns_the_largest_pooled_votes_lower_index_first(kind):
 
 
 def test_the_compiled_projection_is_the_three_numpy_stages(rng):
-    """``project_clipped`` (one compiled pass) = ``project_segments`` (near-plane cut) + ``visible`` +
-    ``clip_to_image``: the same rows, the same pixels to rounding, segments crossing the near plane and the
-    image border included."""
+    """``project_clipped`` (one compiled pass) = ``project_segments`` (near-plane cut) + ``visible`` + a
+    Liang-Barsky clip to the image (``sim.synthetic.clip_to_box``): the same rows, the same pixels to
+    rounding, segments crossing the near plane and the image border included."""
     camera = Camera(fx=500.0, fy=510.0, cx=320.0, cy=240.0, width=640, height=480)
     for _ in range(50):
         lines3d = rng.normal(0.0, 5.0, (400, 6))
@@ -107,7 +106,11 @@ def test_the_compiled_projection_is_the_three_numpy_stages(rng):
         visible = rng.random(len(lines3d)) > 0.2
         projected, front = project_segments(lines3d, camera, pose, 0.1)
         rows = np.flatnonzero(front & visible)
-        clipped, inside = clip_to_image(projected[rows], camera.width, camera.height)
+        p, d = projected[rows, :2], projected[rows, 2:] - projected[rows, :2]
+        lo, hi = np.array([-0.5, -0.5]), np.array([camera.width - 0.5, camera.height - 0.5])
+        t0, t1 = clip_to_box(p, d, lo, hi, np.zeros(len(p)), np.ones(len(p)))
+        inside = t1 > t0
+        clipped = np.c_[p + t0[:, None] * d, p + t1[:, None] * d]
         got, got_rows = project_clipped(lines3d, camera, pose, 0.1, visible)
         assert np.array_equal(got_rows, rows[inside])
         np.testing.assert_allclose(got, clipped[inside], rtol=0.0, atol=1e-6)
@@ -141,18 +144,17 @@ def test_the_fine_grids_get_the_votes_of_one_grid_each(rng):
     k = np.sort(rng.integers(0, n_points, 5000))
     m = rng.integers(0, len(positions), len(k))
     rays = (k, m, rng.uniform(0.5, 12.0, len(k)), directions)
-    image_pts = SimpleNamespace(weight=rng.choice([1.0, 2.0], n_points))
-    map_pts = SimpleNamespace(positions=positions)
+    weight = rng.choice([1.0, 2.0], n_points)
     centres = rng.uniform(-4.0, 4.0, (6, 3))
     half = 1.5
     fine = _FineGrids(len(centres), side)
     for _ in range(2):  # the stamps of one pass never hide votes of the next
-        peaks = fine.vote(centres, half, rays, map_pts, image_pts)
+        peaks = fine.vote(centres, half, rays, positions, weight)
     expected = []
     for b, centre in enumerate(centres):
         lo, hi = centre - half, centre + half
         grid = _Grid(lo, hi, float(np.max(hi - lo)) / side, np.full(3, side, dtype=np.int64))
-        grid.vote(rays, positions, image_pts.weight)
+        grid.vote(rays, positions, weight)
         np.testing.assert_array_equal(fine.accumulator[b], grid.accumulator)
         best, votes = _peaks(grid.votes, grid.lo, grid.voxel, 1)
         expected += [(c, float(v), grid.voxel) for c, v in zip(best, votes, strict=True)]
