@@ -324,7 +324,8 @@ class DecideConfig:
     """When is the best pose an answer (``pipeline.decide``): clearly better than every distinct rival."""
 
     # a pose clearly distinct from the best (rotation, or camera centre farther than distinct_fraction of the
-    # scene depth) scoring above (1 - margin) x best makes the answer ambiguous
+    # scene depth) scoring above (1 - margin) x best makes the answer ambiguous, unless what the best
+    # explains beyond it passes the significance test below on its own (``pipeline.advantage_nfa``)
     margin: float = 0.15
     distinct_angle_deg: float = 2.0
     distinct_fraction: float = 0.05

@@ -165,9 +165,10 @@ def decide(
 ) -> Registration:
     """Returns the Registration of the best refined pose: ``success`` only when it has enough matches,
     explains ``min_explained_fraction`` of the image, more than chance would give any of the poses the search
-    examined (``space``: ``significance.py``), and every distinct pose scores below ``(1 - margin)`` of it:
-    the other poses found, and the best pose itself turned by small angles (``turned_rivals``), which the
-    search need not have visited."""
+    examined (``space``: ``significance.py``), and every distinct pose either scores below ``(1 - margin)``
+    of it or leaves unexplained image lines that the best explains beyond chance (``advantage_nfa``): the
+    other poses found, and the best pose itself turned by small angles (``turned_rivals``), which the search
+    need not have visited."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -205,14 +206,22 @@ def decide(
             f"not significant: the best pose matches {len(matches)} of {len(image.segments)} image segments "
             f"to {distinct} map segments, as 10^{nfa:.1f} chance poses among those searched would"
         )
-    elif runner_up >= (1.0 - dc.margin) * best.score.value:
-        T = next(T for T, s in alternatives if s == runner_up)
-        turn = rotation_error_deg(T[:3, :3], best.cam_from_world[:3, :3])
-        shift = float(np.linalg.norm(camera_center(T) - camera_center(best.cam_from_world)))
-        reason = (
-            f"ambiguous: a distinct pose ({turn:.0f} deg, {shift:.1f} m away) scores "
-            f"{100 * runner_up / best.score.value:.0f} % of the best"
-        )
+    else:
+        for T, value in alternatives:
+            if value < (1.0 - dc.margin) * best.score.value:
+                break
+            # a rival within the margin: the best pose is still the answer if what it explains beyond the
+            # rival is more than chance (the image segments the rival leaves unexplained)
+            over = advantage_nfa(best, seen[order[0]][1], T, view, image, camera, config, space)
+            if over >= dc.max_log10_nfa:
+                turn = rotation_error_deg(T[:3, :3], best.cam_from_world[:3, :3])
+                shift = float(np.linalg.norm(camera_center(T) - camera_center(best.cam_from_world)))
+                reason = (
+                    f"ambiguous: a distinct pose ({turn:.0f} deg, {shift:.1f} m away) scores "
+                    f"{100 * value / best.score.value:.0f} % of the best, and what the best explains beyond "
+                    f"it 10^{over:.1f} chance poses would"
+                )
+                break
     return Registration(
         success=not reason,
         reason=reason,
@@ -261,15 +270,46 @@ def log10_nfa(
     camera: Camera,
     config: RegisterConfig,
     space: SearchSpace,
+    among: np.ndarray | None = None,
 ) -> float:
     """Returns log10 of the number of false alarms of a pose whose matches use ``matched`` of the (K, 6) map
     segments it sees: how many of the poses in ``space`` would match as many by chance
-    (``significance.py``)."""
+    (``significance.py``); ``among``: (N,) bool, the image segments the matches were counted in (None:
+    all)."""
     sc = config.score
     projected, _ = project_clipped(seen, camera, cam_from_world, sc.min_depth_m)
-    p = chance_probabilities(image, projected, sc.distance_px, sc.angle_deg, config.decide.min_cover)
+    p = chance_probabilities(image, projected, sc.distance_px, sc.angle_deg, config.decide.min_cover, among)
     tests = space.log10_tests(camera, depth_of(seen, cam_from_world), sc.distance_px)
     return tests + log10_tail(p, matched)
+
+
+def advantage_nfa(
+    best: Refinement,
+    seen: np.ndarray,
+    rival: np.ndarray,
+    view: MapView,
+    image: ImageLines,
+    camera: Camera,
+    config: RegisterConfig,
+    space: SearchSpace,
+) -> float:
+    """Returns log10 of the number of false alarms of what the ``best`` pose (seeing the (K, 6) map
+    segments ``seen``) explains beyond the (4, 4) ``rival``: its matches among the image segments the rival
+    matches none of, counted per map segment and judged against chance among those image segments alone.
+
+    Two poses explaining nearly the same share of the image (a window lattice shifted by a bay, a
+    courtyard's 180-degree twin) differ only where one explains lines the other does not: the building's
+    corner, a door. Below 0 (fewer than one chance pose among those searched would match those lines as
+    well) the difference is evidence, whatever the ratio of the scores; a symmetric twin, whose own matches
+    are the best's, leaves none (docs/measurements.md)."""
+    min_cover = config.decide.min_cover
+    theirs = view_score(view, image, camera, rival, config.score)[0].matches(min_cover)[:, 0]
+    mine = best.score.matches(min_cover)
+    own = mine[~np.isin(mine[:, 0], theirs)]
+    among = ~np.isin(np.arange(len(image.segments)), theirs)
+    return log10_nfa(
+        best.cam_from_world, len(np.unique(own[:, 1])), seen, image, camera, config, space, among
+    )
 
 
 def view_score(

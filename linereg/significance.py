@@ -66,13 +66,22 @@ class SearchSpace:
 
 
 def chance_probabilities(
-    image: ImageLines, projected: np.ndarray, distance_px: float, angle_deg: float, min_cover: float
+    image: ImageLines,
+    projected: np.ndarray,
+    distance_px: float,
+    angle_deg: float,
+    min_cover: float,
+    among: np.ndarray | None = None,
 ) -> np.ndarray:
     """Returns (K,) the probability that each of (K, 4) projected map segments, placed at a uniformly random
-    offset in the image, explains some image segment (the background model above)."""
+    offset in the image, explains some image segment (the background model above); ``among``: (N,) bool,
+    only those image segments (None: all)."""
     projected = np.ascontiguousarray(projected, dtype=np.float64).reshape(-1, 4)
+    lengths, angles = (
+        (image.lengths, image.angles) if among is None else (image.lengths[among], image.angles[among])
+    )
     area = _chance_areas(
-        image.lengths, image.angles, segment_lengths(projected), segment_angles(projected), distance_px,
+        lengths, angles, segment_lengths(projected), segment_angles(projected), distance_px,
         math.radians(angle_deg), min_cover,
     )  # fmt: skip
     return -np.expm1(-area / float(image.width * image.height))
