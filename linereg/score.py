@@ -289,7 +289,7 @@ def _project_clipped(
 # ---------------------------------------------------------------------------------------------- kernels
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _greedy(pairs: np.ndarray, n_image: int, n_map: int) -> np.ndarray:
     """Returns (P,) bool: the pairs, in the given order, whose image and map segments are both still free."""
     used_i = np.zeros(n_image, np.bool_)
@@ -304,7 +304,7 @@ def _greedy(pairs: np.ndarray, n_image: int, n_map: int) -> np.ndarray:
     return keep
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _cover(seg: np.ndarray, length: float, p: np.ndarray, distance: float) -> tuple[float, float]:
     """Returns (lo, hi) px along image segment ``seg`` (4,) covered by projected segment ``p`` (4,), or
     (0, 0) when it does not cover: the shared stretch along the image segment, where the projected line
@@ -325,7 +325,7 @@ def _cover(seg: np.ndarray, length: float, p: np.ndarray, distance: float) -> tu
     return lo, hi
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _covering_pairs(
     segments: np.ndarray,
     angles: np.ndarray,
@@ -389,7 +389,7 @@ def _covering_pairs(
     return out_i[:n].copy(), out_j[:n].copy(), out_c[:n].copy()
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def grow(a: np.ndarray, cap: int) -> np.ndarray:
     """Returns a 1-D array of ``cap`` slots of ``a``'s dtype starting with ``a`` (compiled kernels' buffers)."""
     out = np.empty(cap, a.dtype)
@@ -397,14 +397,14 @@ def grow(a: np.ndarray, cap: int) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _grow_2(a: np.ndarray, cap: int) -> np.ndarray:
     out = np.empty((cap, 2))
     out[: len(a)] = a
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _union_lengths(i: np.ndarray, cover: np.ndarray, n: int) -> np.ndarray:
     """Returns (n,) the length of the union of the covered stretches (P, 2) of each image segment ``i``."""
     out = np.zeros(n)
@@ -426,7 +426,7 @@ def _union_lengths(i: np.ndarray, cover: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _length_in_cells(projected: np.ndarray, mask: np.ndarray, cell: float) -> float:
     """Returns the length (px) of (K, 4) segments inside the True cells of ``mask``, sampled every half cell."""
     total = 0.0
@@ -445,7 +445,7 @@ def _length_in_cells(projected: np.ndarray, mask: np.ndarray, cell: float) -> fl
     return total
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _shifted_values(
     segments: np.ndarray,
     angles: np.ndarray,

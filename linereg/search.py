@@ -110,21 +110,44 @@ def search(
     # solve (pairs at a tolerance spanning its voxel and the rotation's error, one pose fit), is scored at
     # the score's own tolerance, and the best of those are solved fully
     quick = replace(config, solve_rounds=1)
-    screened = []
-    for _, r, centre, size in peaks:
-        pose = make_cam_from_world(rotations[r], -rotations[r] @ centre)
-        solved = solve_locally(image, lines3d, camera, pose, size, quick, score_config, visible)
-        stats.solved += 1
-        if solved is not None:
-            screened.append((solved[1].value, r, solved[0], size))
+    starts = [
+        (make_cam_from_world(rotations[r], -rotations[r] @ centre), size) for _, r, centre, size in peaks
+    ]
+    solved = _solve_all(starts, image, lines3d, camera, quick, score_config, visible)
+    stats.solved += len(peaks)
+    screened = [
+        (s[1].value, r, s[0], size) for s, (_, r, _, size) in zip(solved, peaks, strict=True) if s is not None
+    ]
     screened.sort(key=lambda p: -p[0])
-    found: list[Found] = []
-    for _, r, pose, size in screened[: config.peaks]:
-        solved = solve_locally(image, lines3d, camera, pose, 0.5 * size, config, score_config, visible)
-        if solved is not None:
-            found.append(Found(solved[0], solved[1], r))
+    best = screened[: config.peaks]
+    starts = [(pose, 0.5 * size) for _, _, pose, size in best]
+    solved = _solve_all(starts, image, lines3d, camera, config, score_config, visible)
+    found = [Found(s[0], s[1], r) for s, (_, r, _, _) in zip(solved, best, strict=True) if s is not None]
     found.sort(key=lambda p: -p.score.value)
     return found, stats
+
+
+def _solve_all(
+    starts: list[tuple[np.ndarray, float]],
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    config: SearchConfig,
+    score_config: ScoreConfig,
+    visible: np.ndarray | None,
+) -> list[tuple[np.ndarray, Score] | None]:
+    """Returns ``solve_locally`` of each (start pose, size) in order, the starts shared among threads as
+    the rotations are (the compiled kernels release the GIL; each result depends on its start alone)."""
+    out: list[tuple[np.ndarray, Score] | None] = [None] * len(starts)
+    workers = thread_count(min(config.max_threads, len(starts)))
+
+    def solve(worker: int) -> None:
+        for i in range(worker, len(starts), workers):
+            pose, size = starts[i]
+            out[i] = solve_locally(image, lines3d, camera, pose, size, config, score_config, visible)
+
+    run_parallel(solve, workers)
+    return out
 
 
 @dataclass(frozen=True)
@@ -516,6 +539,9 @@ def _peaks(votes: np.ndarray, lo: np.ndarray, voxel: float, count: int) -> tuple
     return centres, np.array([pooled[f] for f in flat])
 
 
+_RUN = 64  # voxels whose maximum _top_pooled tests before looking at each
+
+
 @numba.njit(cache=True, nogil=True)
 def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
     """Returns ((<= n,) flat indices, their values) of the largest values of ``votes`` pooled by the max over
@@ -523,55 +549,70 @@ def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # 
     then lower index first).
 
     A pooled value is the vote of one voxel of its block, so only voxels with more votes than the n-th best
-    so far can raise one: every other voxel costs one read. Each pooled voxel is offered once, by the voxel
+    so far can raise one: every other voxel costs one read, and a run of ``_RUN`` of them one maximum (a
+    comparison the compiler vectorises). Each pooled voxel is offered once, by the voxel
     of its block that holds its maximum (the first of them in index order)."""
     X, Y, Z = votes.shape
     heap_v = np.full(n, -1.0, np.float64)
     heap_i = np.full(n, -1, np.int64)
     flat = votes.reshape(-1)
-    for v_index in range(flat.size):
-        w = flat[v_index]
-        # every pooled voxel it offers has an index >= its own: none can beat the root if (w, v_index) does not
-        if not _worse(heap_v[0], heap_i[0], w, v_index):
+    for run in range(0, flat.size, _RUN):
+        stop = min(run + _RUN, flat.size)
+        # a run of voxels all below the root's value offers nothing: the test below for all of them at once
+        if _run_max(flat, run, stop) < heap_v[0]:
             continue
-        x, rest = divmod(v_index, Y * Z)
-        y, z = divmod(rest, Z)
-        # the pooled voxels whose block holds this voxel: (x, y, z) + (0 or 1 on each axis)
-        for px in range(x, min(x + 2, X)):
-            for py in range(y, min(y + 2, Y)):
-                for pz in range(z, min(z + 2, Z)):
-                    # is (x, y, z) the first voxel of (px, py, pz)'s block holding its maximum?
-                    owner = True
-                    for dx in range(2):
-                        for dy in range(2):
-                            for dz in range(2):
-                                qx, qy, qz = px - dx, py - dy, pz - dz
-                                if qx < 0 or qy < 0 or qz < 0:
-                                    continue
-                                u = votes[qx, qy, qz]
-                                q = (qx * Y + qy) * Z + qz
-                                if u > w or (u == w and q < v_index):
-                                    owner = False
-                    if not owner:
-                        continue
-                    p = (px * Y + py) * Z + pz
-                    if not _worse(heap_v[0], heap_i[0], w, p):  # the root is the heap's worst entry
-                        continue
-                    heap_v[0], heap_i[0] = w, p
-                    i = 0  # sift down
-                    while True:
-                        a, b, s = 2 * i + 1, 2 * i + 2, i
-                        if a < n and _worse(heap_v[a], heap_i[a], heap_v[s], heap_i[s]):
-                            s = a
-                        if b < n and _worse(heap_v[b], heap_i[b], heap_v[s], heap_i[s]):
-                            s = b
-                        if s == i:
-                            break
-                        heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
-                        heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
-                        i = s
+        for v_index in range(run, stop):
+            w = flat[v_index]
+            # every pooled voxel it offers has an index >= its own: none can beat the root if (w, v_index) does not
+            if not _worse(heap_v[0], heap_i[0], w, v_index):
+                continue
+            x, rest = divmod(v_index, Y * Z)
+            y, z = divmod(rest, Z)
+            # the pooled voxels whose block holds this voxel: (x, y, z) + (0 or 1 on each axis)
+            for px in range(x, min(x + 2, X)):
+                for py in range(y, min(y + 2, Y)):
+                    for pz in range(z, min(z + 2, Z)):
+                        # is (x, y, z) the first voxel of (px, py, pz)'s block holding its maximum?
+                        owner = True
+                        for dx in range(2):
+                            for dy in range(2):
+                                for dz in range(2):
+                                    qx, qy, qz = px - dx, py - dy, pz - dz
+                                    if qx < 0 or qy < 0 or qz < 0:
+                                        continue
+                                    u = votes[qx, qy, qz]
+                                    q = (qx * Y + qy) * Z + qz
+                                    if u > w or (u == w and q < v_index):
+                                        owner = False
+                        if not owner:
+                            continue
+                        p = (px * Y + py) * Z + pz
+                        if not _worse(heap_v[0], heap_i[0], w, p):  # the root is the heap's worst entry
+                            continue
+                        heap_v[0], heap_i[0] = w, p
+                        i = 0  # sift down
+                        while True:
+                            a, b, s = 2 * i + 1, 2 * i + 2, i
+                            if a < n and _worse(heap_v[a], heap_i[a], heap_v[s], heap_i[s]):
+                                s = a
+                            if b < n and _worse(heap_v[b], heap_i[b], heap_v[s], heap_i[s]):
+                                s = b
+                            if s == i:
+                                break
+                            heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
+                            heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
+                            i = s
     keep = heap_i >= 0
     return heap_i[keep], heap_v[keep]
+
+
+@numba.njit(cache=True, nogil=True)
+def _run_max(flat: np.ndarray, start: int, stop: int) -> float:  # pragma: no cover - numba
+    """Returns the largest of flat[start:stop] (start < stop)."""
+    top = flat[start]
+    for i in range(start + 1, stop):
+        top = max(top, flat[i])
+    return top
 
 
 @numba.njit(cache=True, nogil=True)
