@@ -117,7 +117,8 @@ def test_the_compiled_projection_is_the_three_numpy_stages(rng):
 
 
 def test_the_search_finds_the_same_poses_on_one_thread_or_two():
-    """Rotations are voted in threads when OpenCV may use more than one: the answer is the same either way."""
+    """Rotations are voted, and the peaks solved, in threads when OpenCV may use more than one: the answer is
+    the same either way."""
     scene = paper_scene(np.random.default_rng(3), 100, 0.3, 0.3, 2.0)
     before = cv2.getNumThreads()
     try:
