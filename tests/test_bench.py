@@ -95,6 +95,14 @@ def test_bench_synthetic_quick_end_to_end(tmp_path, capsys):
     assert len(rows) == len(synthetic.METHODS) * len(synthetic.cells(quick=True))
     assert all(r["n"] == 1 and len(r["trials"]) == 1 for r in rows)
     assert all(r["success_rate"] == 1.0 for r in rows if r["method"] == "oracle")
+    # linereg's trials carry the search check; a trial is right-and-claimed exactly when it is a success
+    for row in rows:
+        if row["method"] != "vp":
+            assert "search_check" not in row
+            continue
+        assert sum(row["search_check"].values()) == 1
+        (trial,) = row["trials"]
+        assert (trial["search_check"]["verdict"] == "right") == trial["success"]
     assert results["options"]["baseline"]["max_iterations"] == 20
     pngs = sorted(p.name for p in out.glob("*.png"))
     assert pngs == sorted(

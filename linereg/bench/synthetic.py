@@ -14,7 +14,9 @@ RANSAC per rotation candidate), ``ransac6`` (RANSAC over 6 random line pairs + D
 baseline) and ``oracle`` (PnL with the true matches, the accuracy reference). Trial ``i`` of a cell
 draws its scene from ``default_rng([seed, i])``, so every method sees the same scenes. Success follows the
 paper: R_e < 0.1 rad and |t_e| / |t_GT| < 0.1; pose errors are summarised over successful trials only,
-runtimes over all trials (wall clock around the call, scene generation excluded).
+runtimes over all trials (wall clock around the call, scene generation excluded). For ``vp`` each trial
+also gets the search check (``bench/search_check.py``): right, right but refused, the truth not scoring
+best (a score problem) or scoring best and not returned (a search problem), tallied per cell.
 """
 
 from __future__ import annotations
@@ -29,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bench import report
+from ..bench import report, search_check
 from ..config import RegisterConfig
 from ..geometry import pose_errors
 from ..registration import Registration
@@ -151,14 +153,36 @@ def run_cell(cell: Cell, options: Options, progress: report.Progress | None = No
             errors = (
                 pose_errors(result.cam_from_world, scene.cam_from_world) if result.success and scene else None
             )
-            records.append(
-                report.trial_record(
-                    method, trial, result.success, errors, seconds, result.num_inliers, result.reason
-                )
+            record = report.trial_record(
+                method, trial, result.success, errors, seconds, result.num_inliers, result.reason
             )
+            if method == "vp" and scene is not None:
+                record["search_check"] = _search_check(scene, result, options)
+            records.append(record)
             if progress is not None:
                 progress.advance(f"{cell.sweep}={cell.x:g} {method}")
     return records
+
+
+def _search_check(scene: synthetic.Scene, result: Registration, options: Options) -> dict[str, Any]:
+    """Returns ``search_check.check`` of linereg's answer on a scene: right, refused right, or where it
+    failed (the truth does not score best: the score; it does and was not returned: the search)."""
+    from ..parallel import parallel_clusters
+    from ..pipeline import MapView
+    from ..points import map_gap_m, map_points
+    from ..search import map_signatures
+
+    config = options.config
+    clusters = parallel_clusters(scene.lines3d, config.parallel)
+    points = map_points(scene.lines3d, config.points, map_gap_m(scene.lines3d, config.points))
+    view = MapView(
+        scene.lines3d, clusters, points, map_signatures(points, clusters.labels, clusters.directions)
+    )
+    right = False
+    if result.cam_from_world is not None:
+        rot, _, rel = pose_errors(result.cam_from_world, scene.cam_from_world)
+        right = bool(np.radians(rot) < report.SUCCESS_ROTATION_RAD and rel < report.SUCCESS_REL_TRANSLATION)
+    return search_check.check(scene.lines2d, view, scene.camera, scene.cam_from_world, result, right, config)
 
 
 def run_synthetic(options: Options, progress: report.Progress | None = None) -> dict[str, Any]:
@@ -168,6 +192,10 @@ def run_synthetic(options: Options, progress: report.Progress | None = None) -> 
         records = run_cell(cell, options, progress)
         for method, trials in report.by_key(records, "method").items():
             row = dataclasses.asdict(cell) | {"method": method} | report.cell_stats(trials)
+            if any("search_check" in t for t in trials):
+                counts = search_check.tally(trials)
+                row["search_check"] = counts
+                row["search_check_line"] = "/".join(str(counts[v]) for v in search_check.VERDICTS)
             rows.append(row | {"failure_reasons": report.failure_reasons(trials), "trials": trials})
         if progress is not None:
             progress.note(_cell_line(cell, rows[-len(options.methods) :]))
@@ -205,6 +233,8 @@ TABLE_COLUMNS = (
     ("position_m_median", "pos med m", ".3f"),
     ("time_ms_median", "ms med", ".0f"),
     ("time_ms_p95", "ms p95", ".0f"),
+    # vp only: right / refused right / the truth does not score best / the search missed it
+    ("search_check_line", "check r/rr/score/search", ""),
 )
 
 
