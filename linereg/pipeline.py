@@ -60,14 +60,19 @@ def register(
         lines2d = camera.undistort_points(lines2d.reshape(-1, 2)).reshape(-1, 4)
         camera = camera.undistorted()
     timer = StageTimer()
+    return register_undistorted(lines2d, segments_view(lines3d, config, timer), camera, config, timer, prior)
+
+
+def segments_view(lines3d: np.ndarray, config: RegisterConfig, timer: StageTimer | None = None) -> MapView:
+    """Returns the MapView of validated (M, 6) bare segments (no surfaces): their direction clusters, corner
+    points and signatures (timed as ``parallel_3d`` and ``map_points``)."""
+    timer = timer or StageTimer()
     with timer("parallel_3d"):
         clusters = parallel_clusters(lines3d, config.parallel)
     with timer("map_points"):
         points = map_points(lines3d, config.points, map_gap_m(lines3d, config.points))
         signatures = map_signatures(points, clusters.labels, clusters.directions)
-    return register_undistorted(
-        lines2d, MapView(lines3d, clusters, points, signatures), camera, config, timer, prior
-    )
+    return MapView(lines3d, clusters, points, signatures)
 
 
 @dataclass(frozen=True)
@@ -306,7 +311,8 @@ def advantage_nfa(
     theirs = view_score(view, image, camera, rival, config.score)[0].matches(min_cover)[:, 0]
     mine = best.score.matches(min_cover)
     own = mine[~np.isin(mine[:, 0], theirs)]
-    among = ~np.isin(np.arange(len(image.segments)), theirs)
+    among = np.ones(len(image.segments), dtype=bool)
+    among[theirs] = False
     return log10_nfa(
         best.cam_from_world, len(np.unique(own[:, 1])), seen, image, camera, config, space, among
     )

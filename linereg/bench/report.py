@@ -24,6 +24,13 @@ SUCCESS_ROTATION_RAD = 0.1
 SUCCESS_REL_TRANSLATION = 0.1
 
 
+def meets_criterion(rotation_deg: float, rel_translation: float) -> bool:
+    """Returns whether a pose's errors meet the paper's success criterion (False for NaN)."""
+    return bool(
+        math.radians(rotation_deg) < SUCCESS_ROTATION_RAD and rel_translation < SUCCESS_REL_TRANSLATION
+    )
+
+
 def trial_record(
     method: str,
     trial: int,
@@ -38,7 +45,7 @@ def trial_record(
     errors: ``geometry.pose_errors`` (rotation deg, position m, relative translation) or None (no pose).
     """
     rot, pos, rel = errors if errors is not None else (math.nan, math.nan, math.nan)
-    success = bool(reported and math.radians(rot) < SUCCESS_ROTATION_RAD and rel < SUCCESS_REL_TRANSLATION)
+    success = bool(reported and meets_criterion(rot, rel))
     return {
         "method": method,
         "trial": trial,

@@ -167,21 +167,14 @@ def run_cell(cell: Cell, options: Options, progress: report.Progress | None = No
 def _search_check(scene: synthetic.Scene, result: Registration, options: Options) -> dict[str, Any]:
     """Returns ``search_check.check`` of linereg's answer on a scene: right, refused right, or where it
     failed (the truth does not score best: the score; it does and was not returned: the search)."""
-    from ..parallel import parallel_clusters
-    from ..pipeline import MapView
-    from ..points import map_gap_m, map_points
-    from ..search import map_signatures
+    from ..pipeline import segments_view
 
     config = options.config
-    clusters = parallel_clusters(scene.lines3d, config.parallel)
-    points = map_points(scene.lines3d, config.points, map_gap_m(scene.lines3d, config.points))
-    view = MapView(
-        scene.lines3d, clusters, points, map_signatures(points, clusters.labels, clusters.directions)
-    )
     right = False
     if result.cam_from_world is not None:
         rot, _, rel = pose_errors(result.cam_from_world, scene.cam_from_world)
-        right = bool(np.radians(rot) < report.SUCCESS_ROTATION_RAD and rel < report.SUCCESS_REL_TRANSLATION)
+        right = report.meets_criterion(rot, rel)
+    view = segments_view(scene.lines3d, config)
     return search_check.check(scene.lines2d, view, scene.camera, scene.cam_from_world, result, right, config)
 
 
