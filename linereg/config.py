@@ -176,17 +176,56 @@ class SensorEdgesConfig:
 
 
 @dataclass(frozen=True)
+class PointEdgesConfig:
+    """Edges of an evenly sampled cloud found per point (``map.point_edges``): where the surface bends or
+    ends, then grouped into lines along the scene's directions (small structure: furniture, frames)."""
+
+    neighbours: int = 20  # nearest points of each point's normal (PCA) and of its boundary test
+    compare_neighbours: int = 16  # nearest points whose normals a point's is compared with
+    # this share of the compared neighbours' normals crease_deg from a point's: the surface bends there (a
+    # crease's band); one turned neighbour is noise (a fused room's normals scatter by 10-20 degrees)
+    crease_deg: float = 30.0
+    bend_share: float = 0.25
+    # the neighbours' centroid this far (share of their radius) off the point, in its tangent plane: the
+    # surface ends on one side (a boundary); a full disc has its centroid at its centre, a half disc 0.42
+    boundary_shift: float = 0.3
+    # edge points projected along a direction pile up where a line of that direction runs: points within
+    # width_spacings of a pile's centre belong to it ...
+    width_spacings: float = 1.5
+    # the projection's histogram (cells one spacing wide) is smoothed by a Gaussian of this many cells; a
+    # pile is the largest within peak_cells around it (a 3 cm post's four corners stay four piles)
+    smooth_cells: float = 0.7
+    peak_cells: int = 1
+    gap_spacings: float = 5.0  # ... and split into runs where this many spacings along it hold no point
+    fill: float = 0.5  # a run holds at least this many points per spacing of its length
+    direction_deg: float = 5.0  # directions of the scene this close are one
+    # a run whose cross-section (every point within section_spacings of it) is one flat sheet through it
+    # (thinner than flat_noises x the cloud's noise or flat_aspect x its width, its centroid within
+    # centred_share of the radius from the run) lies inside a surface: no edge
+    section_spacings: float = 5.0
+    flat_noises: float = 2.0
+    flat_aspect: float = 0.35
+    centred_share: float = 0.3
+    along_m: float = 0.03  # an edge this close along a plane's boundary or crease is that line
+    chunk: int = 200_000  # points per batch of neighbour fits (memory: chunk x neighbours x 3 floats)
+
+
+@dataclass(frozen=True)
 class MapBuildConfig:
     """Everything ``LineMap.build`` needs, one section per stage of map building."""
 
     lines3d: Lines3DConfig = field(default_factory=Lines3DConfig)
     profile: MapProfileConfig = field(default_factory=MapProfileConfig)
     sensor: SensorEdgesConfig = field(default_factory=SensorEdgesConfig)
+    point: PointEdgesConfig = field(default_factory=PointEdgesConfig)
     visibility: VisibilityConfig = field(default_factory=VisibilityConfig)
     # choose the cloud-dependent fields of ``lines3d`` from the cloud (``map.profile``); fields set to
     # other values than their defaults are kept as given
     adapt: bool = True
     sensor_edges: bool = True  # occluding contours and ring edges where the sensor origin is known
+    # edges found per point (``map.point_edges``); None: for dense RGB-D fusions (``build.POINT_EDGE_KINDS``),
+    # whose points have round neighbourhoods a few cm across; a scanner's rings and range falloff do not
+    point_edges: bool | None = None
     surfaces: bool = True  # keep the planar regions as a mesh (occlusion-aware visibility)
     mesh_cell_m: float = 0.1  # the surface mesh's cells are at least this (and the region's raster cell)
     # the direction clusters take the directions of the dominant planes (``map.plane_directions``)

@@ -16,7 +16,7 @@ from pathlib import Path
 from . import check_output_file, description
 from .progress import Progress
 
-STAGES = ("read", "normals", "regions", "lines", "clusters", "write")
+STAGES = ("read", "profile", "normals", "regions", "lines", "point edges", "clusters", "write")
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:

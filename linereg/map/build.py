@@ -4,6 +4,9 @@
 2. Planar regions (``planes``), their boundaries and creases, their surfaces as a mesh (``lines3d``).
 3. Where the sensor origin is known and the cloud is a single sweep with rings: occluding contours and
    ring-curvature edges (``sensor_edges``), those not already along a plane's edge.
+4. In a dense RGB-D fusion: edges found per point where the surface bends or ends, along the directions
+   of the scene's frame of dominant planes (``point_edges``: small structure no planar region holds),
+   those not already along a plane's edge. A cloud without such a frame gets none.
 Each segment is tagged with its kind (``kinds``).
 """
 
@@ -24,6 +27,10 @@ from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
 from .surfaces import Surfaces, empty_surfaces, shift_surfaces
 
 logger = logging.getLogger(__name__)
+
+# dense, evenly sampled clouds (``profile.kind``): every point's neighbourhood is a round patch of surface
+# a few cm across. Coarser even clouds ("map", the demo's scan) are not measured with point edges yet
+POINT_EDGE_KINDS = ("rgbd",)
 
 
 class MapContent(NamedTuple):
@@ -84,6 +91,26 @@ def extract_map(
         keep = ~along(found, segments, np.full(len(found), config.sensor.along_plane_m), 10.0)
         segments = np.concatenate([segments, found[keep]])
         kind = np.r_[kind, found_kind[keep]].astype(np.int8)
+    if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
+        from .plane_directions import frame_directions
+        from .point_edges import point_edges
+
+        if progress:
+            progress("point edges")
+        # only along the scene's frame (a room's floor and walls): edge points of noise pile up along any
+        # direction, and a tilted plane's creases or a ragged segment's direction would collect them
+        frame, _ = frame_directions(planes.normals, planes.counts * planes.spacing_m**2, config.directions)
+        found = point_edges(
+            local,
+            frame,
+            max(profile.spacing_m, lines_config.downsample_m),
+            profile.noise_m,
+            lines_config.min_length_m,
+            config.point,
+        )
+        keep = ~along(found, segments, np.full(len(found), config.point.along_m), 10.0)
+        segments = np.concatenate([segments, found[keep]])
+        kind = np.r_[kind, np.full(int(keep.sum()), kinds.POINT_EDGE)].astype(np.int8)
     if not config.surfaces:
         surfaces = empty_surfaces()
     reason = "" if len(segments) else _why_empty(len(planes.counts), lines_config)

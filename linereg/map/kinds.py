@@ -14,6 +14,7 @@ BOUNDARY = 2  # where a planar region ends (its contour in its plane)
 OCCLUDING = 3  # a depth discontinuity seen from the known sensor origin (the near side's silhouette)
 RING_EDGE = 4  # a sharp bend along a spinning LiDAR's scan ring (LOAM-style curvature), not on a plane edge
 INTENSITY = 5  # an edge of the cloud's intensity or colour (opt-in: the paper's maps are untextured)
+POINT_EDGE = 6  # where the surface bends or ends, found per point (``point_edges``: small structure)
 
 NAMES = {
     UNKNOWN: "unknown",
@@ -22,6 +23,7 @@ NAMES = {
     OCCLUDING: "occluding",
     RING_EDGE: "ring_edge",
     INTENSITY: "intensity",
+    POINT_EDGE: "point_edge",
 }
 
 

@@ -1,0 +1,197 @@
+"""Edges of an evenly sampled cloud found per point: where the surface bends or ends, grouped into lines
+along the scene's directions (part of ``build.extract_map``; kind ``kinds.POINT_EDGE``).
+
+The planar regions of ``lines3d`` need a face of some 0.03-0.1 m^2 before it gives an edge. A dense RGB-D
+room holds most of what a photo shows in smaller structure (a chair's rail, a shelf's lip, a cabinet's
+door): no region, no line. Here every point is judged on its own neighbourhood instead:
+
+1. Its normal (PCA of its ``neighbours``) is compared with those of its ``compare_neighbours``: when
+   ``bend_share`` of them are ``crease_deg`` away, the surface bends there (a band of points either side
+   of a crease; one turned neighbour is noise); the neighbours' centroid shifted ``boundary_shift`` of
+   their radius to one side in the tangent plane marks an end (a boundary).
+2. For each direction given (``build`` gives the scene's frame: a room's floor and walls), the edge
+   points are projected along it: a line of that direction is a pile in the 2D projection (its points
+   fall on one spot), found as a peak of the smoothed 2D histogram. Points within ``width_spacings`` of
+   a pile's centre belong to it and split into runs where ``gap_spacings`` hold no point; a run of
+   ``min_length_m`` holding ``fill`` points per spacing is a segment through the pile's centre.
+3. A run whose cross-section is one flat sheet centred on it (noise, or a fused cloud's layers a few cm
+   apart, piled up inside a wall or a floor) lies inside a surface and is dropped: a crease's
+   cross-section is an L, a boundary's a half sheet.
+
+Measured on the shared RGB-D rooms (``linereg bench lines3d --real``, docs/measurements.md, session 21).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import ndimage
+from scipy.spatial import cKDTree
+
+from ..config import PointEdgesConfig
+from ..threads import thread_count
+
+__all__ = ["edge_points", "point_edges"]
+
+
+def point_edges(
+    points: np.ndarray,
+    directions: np.ndarray,
+    spacing_m: float,
+    noise_m: float,
+    min_length_m: float,
+    config: PointEdgesConfig | None = None,
+) -> np.ndarray:
+    """Returns (K, 6) float64 segments along the (D, 3) unit ``directions`` where the surface of the
+    (P, 3) ``points`` (evenly sampled ``spacing_m`` apart, ``noise_m`` noise) bends or ends, at least
+    ``min_length_m`` long."""
+    config = config or PointEdgesConfig()
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    if len(points) < config.neighbours + 1 or len(directions) == 0 or spacing_m <= 0:
+        return np.zeros((0, 6))
+    tree = cKDTree(points)
+    edge = points[edge_points(points, tree, config)]
+    if len(edge) == 0:
+        return np.zeros((0, 6))
+    found = [_runs_along(edge, d, spacing_m, min_length_m, config) for d in _distinct(directions, config)]
+    segments = np.concatenate(found) if found else np.zeros((0, 6))
+    if len(segments):
+        segments = segments[~_flat(segments, points, tree, spacing_m, noise_m, config)]
+    return segments
+
+
+def edge_points(points: np.ndarray, tree: cKDTree, config: PointEdgesConfig) -> np.ndarray:
+    """Returns (P,) bool: does the surface bend (a neighbour's normal ``crease_deg`` away) or end (the
+    neighbours' centroid ``boundary_shift`` of their radius to one side) at each point?"""
+    normal = np.zeros_like(points)
+    shift = np.zeros(len(points))
+    k = config.neighbours
+    compare = min(config.compare_neighbours, k)
+    near = np.zeros((len(points), compare), dtype=np.int64)
+    for lo in range(0, len(points), config.chunk):
+        p = points[lo : lo + config.chunk]
+        dist, nb = tree.query(p, k=k, workers=thread_count(8))
+        q = points[nb]
+        centroid = q.mean(axis=1)
+        d = q - centroid[:, None]
+        n = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))[1][:, :, 0]
+        off = centroid - p
+        off -= n * np.einsum("ni,ni->n", off, n)[:, None]
+        normal[lo : lo + len(p)] = n
+        shift[lo : lo + len(p)] = np.linalg.norm(off, axis=1) / np.maximum(dist[:, -1], 1e-12)
+        near[lo : lo + len(p)] = nb[:, :compare]
+    bends = np.zeros(len(points), dtype=bool)
+    cos = np.cos(np.radians(config.crease_deg))
+    for lo in range(0, len(points), config.chunk):
+        nb, n = near[lo : lo + config.chunk], normal[lo : lo + config.chunk]
+        turned = np.abs(np.einsum("nki,ni->nk", normal[nb], n)) < cos
+        bends[lo : lo + len(n)] = turned.mean(axis=1) >= config.bend_share
+    return bends | (shift > config.boundary_shift)
+
+
+def _distinct(directions: np.ndarray, config: PointEdgesConfig) -> list[np.ndarray]:
+    """Returns the unit directions with near-duplicates (``direction_deg``) left out."""
+    kept: list[np.ndarray] = []
+    cos = np.cos(np.radians(config.direction_deg))
+    for d in directions / np.linalg.norm(directions, axis=1, keepdims=True):
+        if all(abs(d @ k) < cos for k in kept):
+            kept.append(d)
+    return kept
+
+
+def _runs_along(
+    edge: np.ndarray, d: np.ndarray, spacing: float, min_length: float, config: PointEdgesConfig
+) -> np.ndarray:
+    """Returns (k, 6) segments along unit ``d`` where the (E, 3) edge points pile up in projection."""
+    a = np.cross(d, np.eye(3)[np.argmin(np.abs(d))])
+    a /= np.linalg.norm(a)
+    b = np.cross(d, a)
+    uv = np.c_[edge @ a, edge @ b]
+    t = edge @ d
+    lo = uv.min(axis=0) - 2 * spacing
+    ij = np.floor((uv - lo) / spacing).astype(np.int64)
+    hist = np.zeros(tuple(ij.max(axis=0) + 3))
+    np.add.at(hist, (ij[:, 0], ij[:, 1]), 1.0)
+    sigma = config.smooth_cells
+    smooth = ndimage.gaussian_filter(hist, sigma)
+    # a pile of a segment min_length long: fill x min_length / spacing points, 1 / (2 pi sigma^2) of them
+    # in the smoothed peak cell
+    least = config.fill * min_length / spacing / (2 * np.pi * sigma**2)
+    peaks = np.argwhere(
+        (smooth == ndimage.maximum_filter(smooth, size=2 * config.peak_cells + 1)) & (smooth >= least)
+    )
+    if len(peaks) == 0:
+        return np.zeros((0, 6))
+    centres = lo + (peaks + 0.5) * spacing
+    dist, pile = cKDTree(centres).query(uv, distance_upper_bound=config.width_spacings * spacing)
+    on = np.isfinite(dist)
+    uv, t, pile = uv[on], t[on], pile[on]
+    if len(t) == 0:
+        return np.zeros((0, 6))
+    count = np.bincount(pile, minlength=len(centres)).astype(np.float64)
+    sums = np.stack([np.bincount(pile, uv[:, k], len(centres)) for k in range(2)], axis=1)
+    centre = sums / np.maximum(count, 1.0)[:, None]
+    order = np.lexsort((t, pile))
+    pile, t = pile[order], t[order]
+    new_run = np.r_[True, (pile[1:] != pile[:-1]) | (np.diff(t) > config.gap_spacings * spacing)]
+    starts = np.flatnonzero(new_run)
+    ends = np.r_[starts[1:], len(t)] - 1
+    length = t[ends] - t[starts]
+    keep = (length >= min_length) & (ends - starts + 1 >= config.fill * length / spacing)
+    starts, ends = starts[keep], ends[keep]
+    base = centre[pile[starts]] @ np.stack([a, b])
+    return np.concatenate([base + t[starts, None] * d, base + t[ends, None] * d], axis=1)
+
+
+def _flat(
+    segments: np.ndarray,
+    points: np.ndarray,
+    tree: cKDTree,
+    spacing: float,
+    noise: float,
+    config: PointEdgesConfig,
+) -> np.ndarray:
+    """Returns (K,) bool: is each segment's cross-section (the points within ``section_spacings`` of it)
+    one flat sheet centred on it (thinner than ``flat_noises`` x noise, half a spacing or ``flat_aspect``
+    x its width; its centroid within ``centred_share`` of the radius)? A crease's cross-section is an L,
+    a boundary's a half sheet: neither is centred."""
+    radius = config.section_spacings * spacing
+    p0, p1 = segments[:, :3], segments[:, 3:]
+    length = np.linalg.norm(p1 - p0, axis=1)
+    d = (p1 - p0) / length[:, None]
+    # the segment's cylinder in slices at most a radius long, each inside the ball round its middle
+    count = np.ceil(length / radius).astype(np.int64)
+    seg = np.repeat(np.arange(len(segments)), count)
+    step = length[seg] / count[seg]
+    mid = (np.arange(len(seg)) - np.repeat(np.cumsum(count) - count, count) + 0.5) * step
+    near = tree.query_ball_point(
+        p0[seg] + mid[:, None] * d[seg], np.hypot(radius, 0.5 * step), workers=thread_count(8)
+    )
+    sizes = np.fromiter((len(n) for n in near), np.int64, len(near))
+    slice_of = np.repeat(np.arange(len(seg)), sizes)
+    idx = np.concatenate([np.asarray(n, dtype=np.int64) for n in near]) if sizes.sum() else np.zeros(0, int)
+    owner = seg[slice_of]
+    rel = points[idx] - p0[owner]
+    along = np.einsum("ni,ni->n", rel, d[owner])
+    perp = rel - along[:, None] * d[owner]
+    # each point counts in its own slice only (the balls overlap)
+    inside = (np.abs(along - mid[slice_of]) <= 0.5 * step[slice_of]) & (
+        np.linalg.norm(perp, axis=1) <= radius
+    )
+    owner, perp = owner[inside], perp[inside]
+    n = np.bincount(owner, minlength=len(segments)).astype(np.float64)
+    sums = np.stack([np.bincount(owner, perp[:, k], len(segments)) for k in range(3)], axis=1)
+    mean = sums / np.maximum(n, 1.0)[:, None]
+    second = np.zeros((len(segments), 3, 3))
+    for i in range(3):
+        for j in range(i, 3):
+            second[:, i, j] = second[:, j, i] = np.bincount(owner, perp[:, i] * perp[:, j], len(segments))
+    cov = second / np.maximum(n, 1.0)[:, None, None] - np.einsum("ni,nj->nij", mean, mean)
+    # the cross-section lies across d: its covariance has a zero eigenvalue along d, then thickness, width
+    values = np.sqrt(np.maximum(np.linalg.eigvalsh(cov), 0.0))
+    thickness, width = values[:, 1], values[:, 2]
+    # a fused cloud's layers (a few cm apart) make a sheet thicker than its noise, not than its width
+    flat = (thickness < max(config.flat_noises * noise, 0.5 * spacing)) | (
+        thickness < config.flat_aspect * width
+    )
+    centred = np.linalg.norm(mean, axis=1) < config.centred_share * radius
+    return (n < 10) | (flat & centred)
