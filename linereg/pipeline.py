@@ -171,7 +171,8 @@ def decide(
     """Returns the Registration of the best refined pose: ``success`` only when it has enough matches,
     explains ``min_explained_fraction`` of the image, more than chance would give any of the poses the search
     examined (``space``: ``significance.py``), and every distinct pose either scores below ``(1 - margin)``
-    of it or leaves unexplained image lines that the best explains beyond chance (``advantage_nfa``): the
+    of it or leaves unexplained image lines that the best explains beyond chance while explaining none
+    beyond the best that chance would not (``advantage_nfa`` both ways): the
     other poses found, and the best pose itself turned by small angles (``turned_rivals``), which the search
     need not have visited."""
     dc = config.decide
@@ -216,15 +217,25 @@ def decide(
             if value < (1.0 - dc.margin) * best.score.value:
                 break
             # a rival within the margin: the best pose is still the answer if what it explains beyond the
-            # rival is more than chance (the image segments the rival leaves unexplained)
-            over = advantage_nfa(best, seen[order[0]][1], T, view, image, camera, config, space)
-            if over >= dc.max_log10_nfa:
+            # rival is more than chance (the image segments the rival leaves unexplained), and what the
+            # rival explains beyond the best is not: else each holds evidence the other lacks (on a
+            # cluttered real map a wrong pose's chance matches pass the first test, the truth's the second)
+            theirs, theirs_seen = view_score(view, image, camera, T, config.score)
+            over = advantage_nfa(
+                best.cam_from_world, best.score, seen[order[0]][1], theirs, image, camera, config, space
+            )
+            back = advantage_nfa(T, theirs, theirs_seen, best.score, image, camera, config, space)
+            if over >= dc.max_log10_nfa or back < dc.max_log10_nfa:
                 turn = rotation_error_deg(T[:3, :3], best.cam_from_world[:3, :3])
                 shift = float(np.linalg.norm(camera_center(T) - camera_center(best.cam_from_world)))
+                beyond = (
+                    f"what the best explains beyond it 10^{over:.1f} chance poses would"
+                    if over >= dc.max_log10_nfa
+                    else f"it explains lines the best does not (10^{back:.1f} chance poses would)"
+                )
                 reason = (
                     f"ambiguous: a distinct pose ({turn:.0f} deg, {shift:.1f} m away) scores "
-                    f"{100 * value / best.score.value:.0f} % of the best, and what the best explains beyond "
-                    f"it 10^{over:.1f} chance poses would"
+                    f"{100 * value / best.score.value:.0f} % of the best, and {beyond}"
                 )
                 break
     return Registration(
@@ -289,18 +300,19 @@ def log10_nfa(
 
 
 def advantage_nfa(
-    best: Refinement,
+    pose: np.ndarray,
+    score: Score,
     seen: np.ndarray,
-    rival: np.ndarray,
-    view: MapView,
+    other: Score,
     image: ImageLines,
     camera: Camera,
     config: RegisterConfig,
     space: SearchSpace,
 ) -> float:
-    """Returns log10 of the number of false alarms of what the ``best`` pose (seeing the (K, 6) map
-    segments ``seen``) explains beyond the (4, 4) ``rival``: its matches among the image segments the rival
-    matches none of, counted per map segment and judged against chance among those image segments alone.
+    """Returns log10 of the number of false alarms of what the (4, 4) ``pose`` (its ``score``, seeing the
+    (K, 6) map segments ``seen``) explains beyond another pose (its Score ``other``): its matches among the
+    image segments the other matches none of, counted per map segment and judged against chance among
+    those image segments alone.
 
     Two poses explaining nearly the same share of the image (a window lattice shifted by a bay, a
     courtyard's 180-degree twin) differ only where one explains lines the other does not: the building's
@@ -308,14 +320,12 @@ def advantage_nfa(
     well) the difference is evidence, whatever the ratio of the scores; a symmetric twin, whose own matches
     are the best's, leaves none (docs/measurements.md)."""
     min_cover = config.decide.min_cover
-    theirs = view_score(view, image, camera, rival, config.score)[0].matches(min_cover)[:, 0]
-    mine = best.score.matches(min_cover)
+    theirs = other.matches(min_cover)[:, 0]
+    mine = score.matches(min_cover)
     own = mine[~np.isin(mine[:, 0], theirs)]
     among = np.ones(len(image.segments), dtype=bool)
     among[theirs] = False
-    return log10_nfa(
-        best.cam_from_world, len(np.unique(own[:, 1])), seen, image, camera, config, space, among
-    )
+    return log10_nfa(pose, len(np.unique(own[:, 1])), seen, image, camera, config, space, among)
 
 
 def view_score(
