@@ -148,3 +148,28 @@ def test_a_rival_within_the_margin_loses_to_lines_it_cannot_explain():
             assert np.linalg.norm(centre - np.array([2.0, 0.0, 1.5])) < 0.1
         else:
             assert reg.reason.startswith("ambiguous"), reg.reason
+
+
+def test_two_poses_each_explaining_lines_the_other_cannot_are_ambiguous():
+    """The facade and its copy each have a door of their own; the photo shows the original's grid and door
+    and, where the copy's door would be seen from the copy, that door's lines too. Each pose explains the
+    grid and one door: what either explains beyond the other is more than chance, so neither is the
+    answer (``advantage_nfa`` both ways)."""
+    panels = 12
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    truth = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    shift = np.array([0, 20.0, 0, 0, 20.0, 0])
+    segments = door_facade(panels)
+    # the copy's door: the panels upside down and 0.4 m along (other slopes, other places)
+    other_door = segments[-panels:].copy()
+    middle = 0.5 * (segments[:-panels, [2, 5]].min() + segments[:-panels, [2, 5]].max())
+    other_door[:, [2, 5]] = 2 * middle - other_door[:, [2, 5]]
+    other_door[:, [1, 4]] += 0.4
+    segments = np.r_[segments, other_door + shift]
+    lines2d = np.r_[
+        project_clipped(segments[:-panels], camera, truth, 0.05, None)[0],
+        project_clipped(other_door, camera, truth, 0.05, None)[0],  # the copy's door, seen from the copy
+    ]
+    reg = linereg.localize_segments(lines2d, linereg.LineMap.from_segments(segments), camera)
+    assert not reg.success
+    assert reg.reason.startswith("ambiguous") and "explains lines the best does not" in reg.reason, reg.reason
