@@ -189,13 +189,12 @@ class PointEdgesConfig:
     # the neighbours' centroid this far (share of their radius) off the point, in its tangent plane: the
     # surface ends on one side (a boundary); a full disc has its centroid at its centre, a half disc 0.42
     boundary_shift: float = 0.3
-    # edge points projected along a direction pile up where a line of that direction runs: points within
-    # width_spacings of a pile's centre belong to it ...
-    width_spacings: float = 1.5
-    # the projection's histogram (cells one spacing wide) is smoothed by a Gaussian of this many cells; a
-    # pile is the largest within peak_cells around it (a 3 cm post's four corners stay four piles)
+    # edge points projected along a direction pile up where a line of that direction runs: the
+    # projection's histogram (cells one spacing wide) is smoothed by a Gaussian of smooth_cells, and a
+    # pile is the largest within peak_cells around it (a 3 cm post's four corners stay four piles) ...
     smooth_cells: float = 0.7
     peak_cells: int = 1
+    width_spacings: float = 1.5  # ... points within this many spacings of a pile's centre belong to it ...
     gap_spacings: float = 5.0  # ... and split into runs where this many spacings along it hold no point
     fill: float = 0.5  # a run holds at least this many points per spacing of its length
     direction_deg: float = 5.0  # directions of the scene this close are one
@@ -364,7 +363,8 @@ class DecideConfig:
 
     # a pose clearly distinct from the best (rotation, or camera centre farther than distinct_fraction of the
     # scene depth) scoring above (1 - margin) x best makes the answer ambiguous, unless what the best
-    # explains beyond it passes the significance test below on its own (``pipeline.advantage_nfa``)
+    # explains beyond it passes the significance test below on its own and what it explains beyond the
+    # best does not (``pipeline.advantage_nfa`` both ways)
     margin: float = 0.15
     distinct_angle_deg: float = 2.0
     distinct_fraction: float = 0.05

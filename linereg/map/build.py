@@ -88,9 +88,7 @@ def extract_map(
         ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
         found, found_kind = sensor_edges(points - offset, ring, sensor, config.sensor)
         # an edge along a plane's boundary or crease is that line (exactly fitted to its plane)
-        keep = ~along(found, segments, np.full(len(found), config.sensor.along_plane_m), 10.0)
-        segments = np.concatenate([segments, found[keep]])
-        kind = np.r_[kind, found_kind[keep]].astype(np.int8)
+        segments, kind = _add_edges(segments, kind, found, found_kind, config.sensor.along_plane_m)
     if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
         from .plane_directions import frame_directions
         from .point_edges import point_edges
@@ -108,9 +106,8 @@ def extract_map(
             lines_config.min_length_m,
             config.point,
         )
-        keep = ~along(found, segments, np.full(len(found), config.point.along_m), 10.0)
-        segments = np.concatenate([segments, found[keep]])
-        kind = np.r_[kind, np.full(int(keep.sum()), kinds.POINT_EDGE)].astype(np.int8)
+        found_kind = np.full(len(found), kinds.POINT_EDGE, np.int8)
+        segments, kind = _add_edges(segments, kind, found, found_kind, config.point.along_m)
     if not config.surfaces:
         surfaces = empty_surfaces()
     reason = "" if len(segments) else _why_empty(len(planes.counts), lines_config)
@@ -121,6 +118,15 @@ def extract_map(
     return MapContent(
         segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas
     )
+
+
+def _add_edges(
+    segments: np.ndarray, kind: np.ndarray, found: np.ndarray, found_kind: np.ndarray, along_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (segments, kinds) with the (F, 6) ``found`` edges of ``found_kind`` appended, those running
+    within ``along_m`` along a segment already there left out (a plane's line is fitted exactly)."""
+    keep = ~along(found, segments, np.full(len(found), along_m), 10.0)
+    return np.concatenate([segments, found[keep]]), np.r_[kind, found_kind[keep]].astype(np.int8)
 
 
 def _why_empty(num_regions: int, config: Lines3DConfig) -> str:

@@ -32,6 +32,8 @@ from ..threads import thread_count
 
 __all__ = ["edge_points", "point_edges"]
 
+MIN_SECTION_POINTS = 10  # a cross-section of fewer points has no shape to judge
+
 
 def point_edges(
     points: np.ndarray,
@@ -60,8 +62,9 @@ def point_edges(
 
 
 def edge_points(points: np.ndarray, tree: cKDTree, config: PointEdgesConfig) -> np.ndarray:
-    """Returns (P,) bool: does the surface bend (a neighbour's normal ``crease_deg`` away) or end (the
-    neighbours' centroid ``boundary_shift`` of their radius to one side) at each point?"""
+    """Returns (P,) bool: does the surface bend (``bend_share`` of the compared neighbours' normals
+    ``crease_deg`` away) or end (the neighbours' centroid ``boundary_shift`` of their radius to one side)
+    at each point?"""
     normal = np.zeros_like(points)
     shift = np.zeros(len(points))
     k = config.neighbours
@@ -152,8 +155,8 @@ def _flat(
 ) -> np.ndarray:
     """Returns (K,) bool: is each segment's cross-section (the points within ``section_spacings`` of it)
     one flat sheet centred on it (thinner than ``flat_noises`` x noise, half a spacing or ``flat_aspect``
-    x its width; its centroid within ``centred_share`` of the radius)? A crease's cross-section is an L,
-    a boundary's a half sheet: neither is centred."""
+    x its width; its centroid within ``centred_share`` of the radius), or too sparse to judge (fewer than
+    MIN_SECTION_POINTS)? A crease's cross-section is an L, a boundary's a half sheet: neither is centred."""
     radius = config.section_spacings * spacing
     p0, p1 = segments[:, :3], segments[:, 3:]
     length = np.linalg.norm(p1 - p0, axis=1)
@@ -194,4 +197,4 @@ def _flat(
         thickness < config.flat_aspect * width
     )
     centred = np.linalg.norm(mean, axis=1) < config.centred_share * radius
-    return (n < 10) | (flat & centred)
+    return (n < MIN_SECTION_POINTS) | (flat & centred)
