@@ -183,15 +183,20 @@ def decide(
         seen = [view_score(view, image, camera, r.cam_from_world, config.score) for r in refined]
         order = sorted(range(len(refined)), key=lambda k: -seen[k][0].value)
         best = replace(refined[order[0]], score=seen[order[0]][0])
-        rivals = [(refined[k].cam_from_world, seen[k][0].value) for k in order[1:]]
-        rivals += [
-            (f.cam_from_world, view_score(view, image, camera, f.cam_from_world, config.score)[0].value)
+        # (pose, (its occlusion-aware Score, the segments it sees)): kept for the advantage test below
+        scored: list[tuple[np.ndarray, tuple[Score, np.ndarray]]] = [
+            (refined[k].cam_from_world, seen[k]) for k in order[1:]
+        ]
+        scored += [
+            (f.cam_from_world, view_score(view, image, camera, f.cam_from_world, config.score))
             for f in found
             # a pose's score never exceeds the image length it explains: one that cannot come near the best
             # is no rival, seen or hidden
             if f.score.explained_length >= (1.0 - dc.margin) * best.score.value
         ]
-        rivals = [(T, s) for T, s in rivals if differs(T, best.cam_from_world, lines3d, dc)]
+        scored = [(T, sc) for T, sc in scored if differs(T, best.cam_from_world, lines3d, dc)]
+        known = {id(T): sc for T, sc in scored}  # the turned rival below is scored when it is needed
+        rivals = [(T, sc[0].value) for T, sc in scored]
         rivals.append(turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config))
         matches = best.score.matches(dc.min_cover)
         distinct = len(np.unique(matches[:, 1]))  # chance events are per map segment (significance.py)
@@ -220,7 +225,7 @@ def decide(
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
             # rival explains beyond the best is not: else each holds evidence the other lacks (on a
             # cluttered real map a wrong pose's chance matches pass the first test, the truth's the second)
-            theirs, theirs_seen = view_score(view, image, camera, T, config.score)
+            theirs, theirs_seen = known.get(id(T)) or view_score(view, image, camera, T, config.score)
             over = advantage_nfa(
                 best.cam_from_world, best.score, seen[order[0]][1], theirs, image, camera, config, space
             )
