@@ -572,38 +572,48 @@ def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # 
             for px in range(x, min(x + 2, X)):
                 for py in range(y, min(y + 2, Y)):
                     for pz in range(z, min(z + 2, Z)):
-                        # is (x, y, z) the first voxel of (px, py, pz)'s block holding its maximum?
-                        owner = True
-                        for dx in range(2):
-                            for dy in range(2):
-                                for dz in range(2):
-                                    qx, qy, qz = px - dx, py - dy, pz - dz
-                                    if qx < 0 or qy < 0 or qz < 0:
-                                        continue
-                                    u = votes[qx, qy, qz]
-                                    q = (qx * Y + qy) * Z + qz
-                                    if u > w or (u == w and q < v_index):
-                                        owner = False
-                        if not owner:
-                            continue
                         p = (px * Y + py) * Z + pz
-                        if not _worse(heap_v[0], heap_i[0], w, p):  # the root is the heap's worst entry
-                            continue
-                        heap_v[0], heap_i[0] = w, p
-                        i = 0  # sift down
-                        while True:
-                            a, b, s = 2 * i + 1, 2 * i + 2, i
-                            if a < n and _worse(heap_v[a], heap_i[a], heap_v[s], heap_i[s]):
-                                s = a
-                            if b < n and _worse(heap_v[b], heap_i[b], heap_v[s], heap_i[s]):
-                                s = b
-                            if s == i:
-                                break
-                            heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
-                            heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
-                            i = s
+                        # the root is the heap's worst entry
+                        if _owns(votes, px, py, pz, w, v_index) and _worse(heap_v[0], heap_i[0], w, p):
+                            _replace_root(heap_v, heap_i, w, p)
     keep = heap_i >= 0
     return heap_i[keep], heap_v[keep]
+
+
+@numba.njit(cache=True, nogil=True)
+def _owns(votes: np.ndarray, px: int, py: int, pz: int, w: float, v_index: int) -> bool:  # pragma: no cover
+    """Returns True if the voxel ``v_index`` (value w) is the first voxel of pooled voxel (px, py, pz)'s
+    2 x 2 x 2 block (it and its lower neighbours) holding the block's maximum."""
+    _, Y, Z = votes.shape
+    for dx in range(2):
+        for dy in range(2):
+            for dz in range(2):
+                qx, qy, qz = px - dx, py - dy, pz - dz
+                if qx < 0 or qy < 0 or qz < 0:
+                    continue
+                u = votes[qx, qy, qz]
+                if u > w or (u == w and (qx * Y + qy) * Z + qz < v_index):
+                    return False
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _replace_root(heap_v: np.ndarray, heap_i: np.ndarray, w: float, p: int) -> None:  # pragma: no cover
+    """Puts (w, p) at the root of the min-heap (worst entry first, ``_worse``) and sifts it down."""
+    n = len(heap_v)
+    heap_v[0], heap_i[0] = w, p
+    i = 0
+    while True:
+        a, b, s = 2 * i + 1, 2 * i + 2, i
+        if a < n and _worse(heap_v[a], heap_i[a], heap_v[s], heap_i[s]):
+            s = a
+        if b < n and _worse(heap_v[b], heap_i[b], heap_v[s], heap_i[s]):
+            s = b
+        if s == i:
+            break
+        heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
+        heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
+        i = s
 
 
 @numba.njit(cache=True, nogil=True)
