@@ -195,15 +195,17 @@ def decide(
             if f.score.explained_length >= (1.0 - dc.margin) * best.score.value
         ]
         scored = [(T, sc) for T, sc in scored if differs(T, best.cam_from_world, lines3d, dc)]
-        known = {id(T): sc for T, sc in scored}  # the turned rival below is scored when it is needed
-        rivals = [(T, sc[0].value) for T, sc in scored]
-        rivals.append(turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config))
+        # (pose, value, its (Score, seen) or None): the turned rival is scored below when it is needed
+        rivals: list[tuple[np.ndarray, float, tuple[Score, np.ndarray] | None]] = [
+            (T, sc[0].value, sc) for T, sc in scored
+        ]
+        rivals.append((*turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config), None))
         matches = best.score.matches(dc.min_cover)
         distinct = len(np.unique(matches[:, 1]))  # chance events are per map segment (significance.py)
         nfa = log10_nfa(best.cam_from_world, distinct, seen[order[0]][1], image, camera, config, space)
     rivals.sort(key=lambda p: -p[1])
-    alternatives = _distinct(rivals, _first, lines3d, dc)[:8]
-    runner_up = max((s for _, s in alternatives), default=0.0)
+    alternatives = _distinct(rivals, lambda rival: rival[0], lines3d, dc)[:8]
+    runner_up = max((s for _, s, _ in alternatives), default=0.0)
     explained = best.score.explained_length / max(image.total_length, 1e-9)
     reason = ""
     if best.score.value <= 0:
@@ -218,14 +220,14 @@ def decide(
             f"to {distinct} map segments, as 10^{nfa:.1f} chance poses among those searched would"
         )
     else:
-        for T, value in alternatives:
+        for T, value, known in alternatives:
             if value < (1.0 - dc.margin) * best.score.value:
                 break
             # a rival within the margin: the best pose is still the answer if what it explains beyond the
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
             # rival explains beyond the best is not: else each holds evidence the other lacks (on a
             # cluttered real map a wrong pose's chance matches pass the first test, the truth's the second)
-            theirs, theirs_seen = known.get(id(T)) or view_score(view, image, camera, T, config.score)
+            theirs, theirs_seen = known or view_score(view, image, camera, T, config.score)
             over = advantage_nfa(
                 best.cam_from_world, best.score, seen[order[0]][1], theirs, image, camera, config, space
             )
@@ -255,8 +257,8 @@ def decide(
         explained_fraction=float(explained),
         log10_nfa=float(nfa),
         runner_up_score=float(max(runner_up, 0.0)),
-        alternatives=np.array([T for T, _ in alternatives]).reshape(-1, 4, 4),
-        alternative_scores=np.array([s for _, s in alternatives], dtype=np.float64),
+        alternatives=np.array([T for T, _, _ in alternatives]).reshape(-1, 4, 4),
+        alternative_scores=np.array([s for _, s, _ in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
 
@@ -404,10 +406,6 @@ def _distinct(
 
 def _found_pose(f: Found) -> np.ndarray:
     return f.cam_from_world
-
-
-def _first(pair: tuple[np.ndarray, float]) -> np.ndarray:
-    return pair[0]
 
 
 def differs(a: np.ndarray, b: np.ndarray, lines3d: np.ndarray, dc: DecideConfig) -> bool:

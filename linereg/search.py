@@ -574,7 +574,7 @@ def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # 
                     for pz in range(z, min(z + 2, Z)):
                         p = (px * Y + py) * Z + pz
                         # the root is the heap's worst entry
-                        if _owns(votes, px, py, pz, w, v_index) and _worse(heap_v[0], heap_i[0], w, p):
+                        if _worse(heap_v[0], heap_i[0], w, p) and _owns(votes, px, py, pz, w, v_index):
                             _replace_root(heap_v, heap_i, w, p)
     keep = heap_i >= 0
     return heap_i[keep], heap_v[keep]

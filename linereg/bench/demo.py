@@ -51,10 +51,10 @@ def localize_image(
     if result.cam_from_world is not None:  # outside the timing: the truth refined, for the search check
         config = config or RegisterConfig()
         lines2d = detect(image, camera)
-        right = report.trial_record("demo", k, True, pose_errors(result.cam_from_world, truth), 0.0)
+        rot, _, rel = pose_errors(result.cam_from_world, truth)
         view = map_view(line_map, None, config)
         record["search_check"] = search_check.check(
-            lines2d, view, camera.undistorted(), truth, result, right["success"], config
+            lines2d, view, camera.undistorted(), truth, result, report.meets_criterion(rot, rel), config
         )
     return record
 
