@@ -384,6 +384,12 @@ class DecideConfig:
     # an image segment is matched to the map segment covering most of it, if that covers more than this
     # fraction of it (the paper's overlap test)
     min_cover: float = 0.5
+    # copies of the best pose's matched corners elsewhere in the map (``copies.py``), under each rotation
+    # searched: those where corners holding this share of them agree on a camera centre, this many per
+    # rotation, are solved and are rivals (copies sharing fewer are left to the search)
+    copy_share: float = 0.4
+    copies_per_rotation: int = 2
+    copy_rounds: int = 2  # a copy scoring more than the best is refined and becomes the best this many times
 
 
 @dataclass(frozen=True)

@@ -11,7 +11,7 @@ then   the decision: a pose is an answer only when no distinct pose comes close 
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from typing import TypeVar
 
@@ -19,6 +19,7 @@ import numpy as np
 
 from .camera import Camera
 from .config import DecideConfig, RegisterConfig, ScoreConfig
+from .copies import copy_starts
 from .directions import DirectionClusters
 from .errors import InvalidInputError
 from .geometry import camera_center, rotation_error_deg, rotation_from_vector
@@ -29,7 +30,7 @@ from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
 from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
 from .score import ImageLines, Score, image_lines, project_clipped, score_pose, shifted_values
-from .search import Found, MapSignatures, map_signatures, search
+from .search import Found, MapSignatures, map_signatures, search, solve_all
 from .significance import SearchSpace, chance_probabilities, depth_of, log10_tail
 from .timing import StageTimer
 from .vanishing import vanishing_directions
@@ -154,6 +155,9 @@ def register_undistorted(
             )
             for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
+    # copies of what the best pose sees elsewhere in the map: rivals, and the best when one scores more
+    with timer("copies"):
+        refined, found = with_copies(refined, found, view, image, camera, config, rotations, regions)
     space = SearchSpace.of(regions, len(rotations), config)
     return decide(refined, found, view, image, camera, config, timer, space)
 
@@ -173,8 +177,9 @@ def decide(
     examined (``space``: ``significance.py``), and every distinct pose either scores below ``(1 - margin)``
     of it or leaves unexplained image lines that the best explains beyond chance while explaining none
     beyond the best that chance would not (``advantage_nfa`` both ways): the
-    other poses found, and the best pose itself turned by small angles (``turned_rivals``), which the search
-    need not have visited."""
+    other poses found (with the copies of what the best sees elsewhere in the map: ``with_copies``) and
+    the best pose itself turned by small angles (``turned_rivals``), which the search need not have
+    visited."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -348,6 +353,86 @@ def view_score(
     score = score_pose(image, parts, camera, cam_from_world, config)
     pairs = np.c_[score.pairs[:, 0], rows[score.pairs[:, 1]]] if len(score.pairs) else score.pairs
     return replace(score, pairs=pairs.astype(np.int64).reshape(-1, 2)), parts
+
+
+def with_copies(
+    refined: list[Refinement],
+    found: list[Found],
+    view: MapView,
+    image: ImageLines,
+    camera: Camera,
+    config: RegisterConfig,
+    rotations: Sequence[np.ndarray],
+    regions: Sequence[tuple[np.ndarray, np.ndarray]],
+) -> tuple[list[Refinement], list[Found]]:
+    """Returns (refined, found) with the copies of the best refined pose (by the occlusion-aware score)
+    among the found poses (``copy_rivals``) and, where a copy scores more than the best, that copy refined
+    among the refined, whose own copies are then added in turn (up to ``copy_rounds`` times); copies
+    under the ``rotations`` searched with camera centres in the ``regions`` searched (what a prior
+    admits)."""
+    dc = config.decide
+    values = [view_score(view, image, camera, r.cam_from_world, config.score)[0] for r in refined]
+    done: set[int] = set()
+    for _ in range(dc.copy_rounds):
+        k = int(np.argmax([v.value for v in values]))
+        if k in done:  # the copy refined scores less than the pose it copies
+            break
+        done.add(k)
+        copies = copy_rivals(
+            refined[k].cam_from_world, values[k], view, image, camera, config, rotations, regions
+        )
+        found = found + [Found(T, score, -1) for T, score in copies]
+        best = values[k].value
+        # a copy's score never exceeds the image length it explains
+        better = [
+            (T, view_score(view, image, camera, T, config.score)[0])
+            for T, sc in copies
+            if sc.explained_length > best
+        ]
+        better = [(T, sc) for T, sc in better if sc.value > best]
+        if not better:
+            break
+        T = max(better, key=lambda b: b[1].value)[0]
+        refined = [
+            *refined,
+            refine_pose(image, view.segments, camera, T, config.refine, config.score, view.visible),
+        ]
+        values.append(view_score(view, image, camera, refined[-1].cam_from_world, config.score)[0])
+    return refined, found
+
+
+def copy_rivals(
+    cam_from_world: np.ndarray,
+    score: Score,
+    view: MapView,
+    image: ImageLines,
+    camera: Camera,
+    config: RegisterConfig,
+    rotations: Sequence[np.ndarray],
+    regions: Sequence[tuple[np.ndarray, np.ndarray]],
+) -> list[tuple[np.ndarray, Score]]:
+    """Returns (pose, Score without occlusion) of each copy of what a pose (its occlusion-aware ``score``)
+    matched elsewhere in the map under the (3, 3) ``rotations`` (``copies.py``) with camera centres inside
+    one of the ``regions`` (boxes (low, high)), solved locally as the search solves its peaks: the rivals
+    a symmetric or repeated map makes, found from the map."""
+    dc = config.decide
+    matched = np.zeros(len(view.segments), dtype=bool)
+    matched[score.matches(dc.min_cover)[:, 1]] = True
+    starts = copy_starts(
+        cam_from_world, matched, view.points, view.signatures, view.segments, camera, list(rotations),
+        config.search.arm_angle_deg, dc.distinct_angle_deg, dc.distinct_fraction, dc.copy_share,
+        dc.copies_per_rotation,
+    )  # fmt: skip
+    inside = [
+        (T, size)
+        for T, size, _ in starts
+        if any(np.all((lo <= c) & (c <= hi)) for lo, hi in regions for c in [camera_center(T)])
+    ]
+    solved = solve_all(
+        inside, image, view.segments, camera, config.search, config.score,
+        view.visible,
+    )  # fmt: skip
+    return [s for s in solved if s is not None]
 
 
 def turned_rival(

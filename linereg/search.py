@@ -113,7 +113,7 @@ def search(
     starts = [
         (make_cam_from_world(rotations[r], -rotations[r] @ centre), size) for _, r, centre, size in peaks
     ]
-    solved = _solve_all(starts, image, lines3d, camera, quick, score_config, visible)
+    solved = solve_all(starts, image, lines3d, camera, quick, score_config, visible)
     stats.solved += len(peaks)
     screened = [
         (s[1].value, r, s[0], size) for s, (_, r, _, size) in zip(solved, peaks, strict=True) if s is not None
@@ -121,13 +121,13 @@ def search(
     screened.sort(key=lambda p: -p[0])
     best = screened[: config.peaks]
     starts = [(pose, 0.5 * size) for _, _, pose, size in best]
-    solved = _solve_all(starts, image, lines3d, camera, config, score_config, visible)
+    solved = solve_all(starts, image, lines3d, camera, config, score_config, visible)
     found = [Found(s[0], s[1], r) for s, (_, r, _, _) in zip(solved, best, strict=True) if s is not None]
     found.sort(key=lambda p: -p.score.value)
     return found, stats
 
 
-def _solve_all(
+def solve_all(
     starts: list[tuple[np.ndarray, float]],
     image: ImageLines,
     lines3d: np.ndarray,
@@ -157,7 +157,8 @@ class MapSignatures:
 
     order: (K,) map point indices sorted by key; keys: (K,) sorted keys (two arms: ``lo * 2C + hi`` of the
     arm codes ``2 c + (arm against cluster c's direction)``, ``lo <= hi``; one arm: ``(2C)^2 + code``; -1:
-    an arm outside every cluster); swapped: (K,) True where the canonical order swaps the point's arms.
+    an arm outside every cluster); swapped: (K,) True where the canonical order swaps the point's arms;
+    codes: (K, 2) each point's arm codes in point order (-1: an arm outside every cluster, -2: no arm).
     """
 
     order: np.ndarray
@@ -165,6 +166,7 @@ class MapSignatures:
     swapped: np.ndarray
     directions: np.ndarray
     loose: np.ndarray  # map points with an arm outside every cluster: tested one by one
+    codes: np.ndarray
 
 
 def map_signatures(map_pts: Points, labels: np.ndarray, directions: np.ndarray) -> MapSignatures:
@@ -176,7 +178,7 @@ def map_signatures(map_pts: Points, labels: np.ndarray, directions: np.ndarray) 
     arms = np.nan_to_num(map_pts.arms)
     dirs = directions[np.maximum(label, 0)] if len(directions) else np.zeros((*seg.shape, 3))
     against = np.einsum("kad,kad->ka", arms, dirs) < 0
-    code = np.where(label >= 0, 2 * label + against, -1)
+    code = np.where(label >= 0, 2 * label + against, label)
     nc = 2 * len(directions)
     two = seg[:, 1] >= 0
     loose = (label[:, 0] == -1) | (two & (label[:, 1] == -1))
@@ -186,7 +188,9 @@ def map_signatures(map_pts: Points, labels: np.ndarray, directions: np.ndarray) 
     keys = np.where(two, lo_code * nc + hi_code, nc * nc + code[:, 0])
     keys = np.where(loose, -1, keys)
     order = np.argsort(keys, kind="stable")
-    return MapSignatures(order, keys[order], swapped, directions, np.flatnonzero(loose))
+    return MapSignatures(
+        order, keys[order], swapped, directions, np.flatnonzero(loose), code.astype(np.int64)
+    )
 
 
 class _Grid:

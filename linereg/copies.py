@@ -1,0 +1,164 @@
+"""Copies of what a pose sees elsewhere in the map: the rivals a symmetric or repeated map makes.
+
+A pose explains an image through the map corners it matched. Wherever the map repeats those corners (a
+building's 180-degree twin, the next window bay, a courtyard turned by 90 degrees), a camera placed and
+turned accordingly sees the same corners in the same places and explains the same image lines. Such a copy
+is the one rival a significance test cannot see (the repetition is the map's, not chance), and the search
+need not have solved it. It is found from the map alone: under each rotation candidate R' the matched
+corners q of the pose (R, c), turned by ``S = R'^T R``, must land on map corners X of the same arm
+directions, so the copy's camera centre is ``X - S (q - c)`` for some pairing; where many corners agree on
+it, the copy is. Every pairing votes, so no copy sharing that many corners is missed (within the voxel
+the votes are counted in), whatever the search did.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .camera import Camera
+from .geometry import camera_center, make_cam_from_world, rotation_error_deg
+from .points import Points
+from .search import MapSignatures
+from .significance import depth_of
+
+
+def copy_starts(
+    cam_from_world: np.ndarray,
+    matched: np.ndarray,
+    map_pts: Points,
+    signatures: MapSignatures,
+    lines3d: np.ndarray,
+    camera: Camera,
+    rotations: list[np.ndarray],
+    arm_angle_deg: float,
+    distinct_angle_deg: float,
+    distinct_fraction: float,
+    min_share: float,
+    per_rotation: int,
+) -> list[tuple[np.ndarray, float, float]]:
+    """Returns (start cam_from_world, size_m, share) of the copies of a pose's matched corners: under each
+    (3, 3) rotation in ``rotations`` (and the pose's own), the camera centres on which corners holding at
+    least ``min_share`` of the matched corners' weight agree, up to ``per_rotation`` of them, best first,
+    each known to within ``size_m``; the pose itself (closer than ``distinct_fraction`` of its depth at
+    its own rotation) is left out.
+
+    matched: (M,) bool map segments the pose matched; map_pts, signatures: the map's corners and their arm
+    codes (``search.map_signatures``).
+    """
+    R, c = cam_from_world[:3, :3], camera_center(cam_from_world)
+    codes = signatures.codes
+    q = _seen_corners(cam_from_world, matched, map_pts, codes, camera)
+    if len(q) < 3:
+        return []
+    weight = map_pts.weight[q]
+    total = float(weight.sum())
+    depth = depth_of(lines3d[matched], cam_from_world)
+    # voxels of the distinctness radius: a copy closer than that to the pose is the pose
+    voxel = distinct_fraction * depth
+    cos_arm = np.cos(np.radians(arm_angle_deg))
+    turns: list[np.ndarray] = []
+    out: list[tuple[np.ndarray, float, float]] = []
+    for R_copy in [R, *rotations]:
+        S = R_copy.T @ R
+        if any(rotation_error_deg(S, T) < arm_angle_deg for T in turns):
+            continue
+        turns.append(S)
+        keys = _turned_keys(codes[q], S, signatures.directions, cos_arm)
+        k, m = _compatible(keys, signatures)
+        if len(k) == 0:
+            continue
+        centres = map_pts.positions[m] - (map_pts.positions[q[k]] - c) @ S.T
+        own = rotation_error_deg(S, np.eye(3)) < distinct_angle_deg
+        for centre, share in _agreements(
+            centres, k, weight, total, voxel, min_share, per_rotation, c if own else None
+        ):
+            out.append((make_cam_from_world(R_copy, -R_copy @ centre), voxel, share))
+    out.sort(key=lambda s: -s[2])
+    return out
+
+
+def _seen_corners(
+    cam_from_world: np.ndarray, matched: np.ndarray, map_pts: Points, codes: np.ndarray, camera: Camera
+) -> np.ndarray:
+    """Returns the indices of the map points in front of the camera and inside the image with every arm on
+    a matched segment and in a cluster."""
+    seg = map_pts.arm_segments
+    on = (seg[:, 0] >= 0) & matched[np.maximum(seg[:, 0], 0)]
+    on &= (seg[:, 1] < 0) | matched[np.maximum(seg[:, 1], 0)]
+    on &= (codes[:, 0] >= 0) & ((codes[:, 1] >= 0) | (seg[:, 1] < 0))
+    x = map_pts.positions @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
+    front = x[:, 2] > 1e-6
+    uv = x[:, :2] / np.where(front, x[:, 2], 1.0)[:, None] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
+    return np.flatnonzero(on & front & inside)
+
+
+def _turned_keys(codes: np.ndarray, S: np.ndarray, directions: np.ndarray, cos_arm: float) -> np.ndarray:
+    """Returns (Q,) the signature keys (``search.MapSignatures``) of points with arm ``codes`` (Q, 2) once
+    turned by S: each cluster goes to the cluster its turned direction falls on (sign kept in the code);
+    -1 where an arm's cluster falls on none."""
+    nc = 2 * len(directions)
+    dots = (directions @ S.T) @ directions.T  # [c, c']: turned cluster c against cluster c'
+    target = np.argmax(np.abs(dots), axis=1)
+    sign = dots[np.arange(len(directions)), target]
+    code_map = np.full(nc, -1, np.int64)
+    ok = np.abs(sign) >= cos_arm
+    for a in range(2):  # arm along (0) or against (1) its cluster's direction
+        code_map[2 * np.arange(len(directions)) + a] = np.where(ok, 2 * target + (a ^ (sign < 0)), -1)
+    first = code_map[np.maximum(codes[:, 0], 0)]
+    two = codes[:, 1] >= 0
+    second = np.where(two, code_map[np.maximum(codes[:, 1], 0)], 0)
+    lo, hi = np.minimum(first, second), np.maximum(first, second)
+    keys = np.where(two, lo * nc + hi, nc * nc + first)
+    return np.where((first < 0) | (two & (second < 0)), -1, keys)
+
+
+def _compatible(keys: np.ndarray, signatures: MapSignatures) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((P,) k, (P,) m): every pair of a turned point k and a map point m of the same key."""
+    lo = np.searchsorted(signatures.keys, keys, "left")
+    hi = np.searchsorted(signatures.keys, keys, "right")
+    counts = np.where(keys >= 0, hi - lo, 0)
+    k = np.repeat(np.arange(len(keys)), counts)
+    start = np.repeat(lo - np.cumsum(counts) + counts, counts)
+    return k, signatures.order[start + np.arange(len(k))]
+
+
+def _agreements(
+    centres: np.ndarray,
+    k: np.ndarray,
+    weight: np.ndarray,
+    total: float,
+    voxel: float,
+    min_share: float,
+    count: int,
+    exclude: np.ndarray | None,
+) -> list[tuple[np.ndarray, float]]:
+    """Returns up to ``count`` (centre, share) where the (P, 3) ``centres`` of distinct points ``k`` agree
+    within a voxel, holding at least ``min_share`` of the ``total`` weight, best first and each at least
+    two voxels from a better one (and from ``exclude``): every centre votes in the 8 voxels nearest to it,
+    so any two closer than a voxel on each axis share one; a point counts once per voxel."""
+    base = np.floor(centres / voxel - 0.5).astype(np.int64)
+    base -= base.min(axis=0)
+    side = base.max(axis=0) + 2
+    cell = (base[:, 0] * side[1] + base[:, 1]) * side[2] + base[:, 2]
+    # the 8 voxels nearest each centre: offsets (0/1 on each axis) in the flattened index
+    offsets = ((np.indices((2, 2, 2)).reshape(3, 8).T) * [side[1] * side[2], side[2], 1]).sum(axis=1)
+    cells = (cell[:, None] + offsets[None]).reshape(-1)
+    n = int(k.max()) + 1
+    once, first = np.unique(cells * n + np.repeat(k, 8), return_index=True)  # a point once per voxel
+    ids, inverse = np.unique(once // n, return_inverse=True)
+    votes = np.bincount(inverse, weights=weight[once % n], minlength=len(ids))
+    pair = first // 8  # the pair (row of ``centres``) behind each (voxel, point) vote
+    out: list[tuple[np.ndarray, float]] = []
+    for v in np.argsort(-votes, kind="stable"):
+        share = float(votes[v]) / total
+        if share < min_share or len(out) >= count:
+            break
+        members = pair[inverse == v]  # a pair of each point voting in this voxel
+        centre = np.median(centres[members], axis=0)
+        if exclude is not None and np.linalg.norm(centre - exclude) < 2 * voxel:
+            continue
+        if any(np.linalg.norm(centre - o) < 2 * voxel for o, _ in out):
+            continue
+        out.append((centre, share))
+    return out

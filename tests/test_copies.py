@@ -1,0 +1,67 @@
+"""Copies of what a pose sees elsewhere in the map (``copies.py``): found from the map alone."""
+
+import numpy as np
+from test_decide import facade_copies
+
+import linereg
+from linereg.config import RegisterConfig
+from linereg.copies import copy_starts
+from linereg.geometry import camera_center, make_cam_from_world, rotation_error_deg
+from linereg.localization import map_view
+from linereg.score import image_lines, project_clipped, score_pose
+from linereg.sim.synthetic import look_at
+
+CAMERA = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+
+
+def starts_of(segments: np.ndarray, pose: np.ndarray, rotations: list[np.ndarray]) -> list:
+    """Returns ``copy_starts`` of a pose matching every map segment it sees (the map without surfaces)."""
+    config = RegisterConfig()
+    view = map_view(linereg.LineMap.from_segments(segments), None, config)
+    lines2d, _ = project_clipped(segments, CAMERA, pose, 0.05)
+    score = score_pose(image_lines(lines2d, CAMERA, config.score), segments, CAMERA, pose, config.score)
+    matched = np.zeros(len(segments), dtype=bool)
+    matched[score.matches(0.5)[:, 1]] = True
+    dc = config.decide
+    return copy_starts(
+        pose, matched, view.points, view.signatures, segments, CAMERA, rotations,
+        config.search.arm_angle_deg, dc.distinct_angle_deg, dc.distinct_fraction, dc.copy_share, 2,
+    )  # fmt: skip
+
+
+def test_a_facade_repeated_along_the_street_gives_its_copy_and_not_the_pose_itself():
+    """The same facade pattern 20 m along: the camera 20 m along is where every matched corner agrees."""
+    segments, _ = facade_copies()
+    pose = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    starts = starts_of(segments, pose, [])
+    assert starts, "no copy found"
+    T, size, share = starts[0]
+    assert share > 0.9
+    assert rotation_error_deg(T[:3, :3], pose[:3, :3]) < 1e-9
+    assert np.linalg.norm(camera_center(T) - [2.0, 20.0, 1.5]) <= size
+    assert all(np.linalg.norm(camera_center(T) - [2.0, 0.0, 1.5]) > size for T, size, _ in starts)
+
+
+def test_a_building_turned_half_round_gives_the_twin_under_the_turned_rotation():
+    """A facade and its copy turned 180 degrees about a vertical axis (a building's back): under the
+    rotation candidate of the twin, the camera centre is the pose's own turned about that axis."""
+    segments, _ = facade_copies()
+    pattern = segments[: len(segments) // 2]
+    turn = make_cam_from_world(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))[:3, :3]  # 180 degrees about z
+    twin = np.c_[pattern[:, :3] @ turn.T, pattern[:, 3:] @ turn.T] + [60.0, 5.0, 0.0, 60.0, 5.0, 0.0]
+    both = np.r_[pattern, twin]
+    pose = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    R_twin = pose[:3, :3] @ turn.T
+    starts = starts_of(both, pose, [pose[:3, :3], R_twin])
+    expected = turn @ np.array([2.0, 0.0, 1.5]) + [60.0, 5.0, 0.0]
+    near = [s for s in starts if np.linalg.norm(camera_center(s[0]) - expected) <= s[1]]
+    assert near, [camera_center(s[0]) for s in starts]
+    T, _, share = near[0]
+    assert share > 0.9 and rotation_error_deg(T[:3, :3], R_twin) < 1e-6
+
+
+def test_a_lone_facade_has_no_copy():
+    segments, _ = facade_copies()
+    pattern = segments[: len(segments) // 2]
+    pose = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    assert starts_of(pattern, pose, [pose[:3, :3]]) == []
