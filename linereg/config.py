@@ -389,7 +389,6 @@ class DecideConfig:
     # rotation, are solved and are rivals (copies sharing fewer are left to the search)
     copy_share: float = 0.4
     copies_per_rotation: int = 2
-    copy_rounds: int = 2  # a copy scoring more than the best is refined and becomes the best this many times
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,8 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
-from .geometry import camera_center, make_cam_from_world, rotation_error_deg
+from .config import DecideConfig
+from .geometry import camera_center, make_cam_from_world, project_points, rotation_error_deg
 from .points import Points
 from .search import MapSignatures
 from .significance import depth_of
@@ -31,19 +32,16 @@ def copy_starts(
     camera: Camera,
     rotations: list[np.ndarray],
     arm_angle_deg: float,
-    distinct_angle_deg: float,
-    distinct_fraction: float,
-    min_share: float,
-    per_rotation: int,
+    config: DecideConfig,
 ) -> list[tuple[np.ndarray, float, float]]:
     """Returns (start cam_from_world, size_m, share) of the copies of a pose's matched corners: under each
     (3, 3) rotation in ``rotations`` (and the pose's own), the camera centres on which corners holding at
-    least ``min_share`` of the matched corners' weight agree, up to ``per_rotation`` of them, best first,
-    each known to within ``size_m``; the pose itself (closer than ``distinct_fraction`` of its depth at
-    its own rotation) is left out.
+    least ``copy_share`` of the matched corners' weight agree, up to ``copies_per_rotation`` of them, best
+    first, each known to within ``size_m``; the pose itself (closer than ``distinct_fraction`` of its depth
+    at its own rotation) is left out.
 
     matched: (M,) bool map segments the pose matched; map_pts, signatures: the map's corners and their arm
-    codes (``search.map_signatures``).
+    codes (``search.map_signatures``); arm_angle_deg: how far a turned arm may be from a map direction.
     """
     R, c = cam_from_world[:3, :3], camera_center(cam_from_world)
     codes = signatures.codes
@@ -54,7 +52,7 @@ def copy_starts(
     total = float(weight.sum())
     depth = depth_of(lines3d[matched], cam_from_world)
     # voxels of the distinctness radius: a copy closer than that to the pose is the pose
-    voxel = distinct_fraction * depth
+    voxel = config.distinct_fraction * depth
     cos_arm = np.cos(np.radians(arm_angle_deg))
     turns: list[np.ndarray] = []
     out: list[tuple[np.ndarray, float, float]] = []
@@ -68,9 +66,16 @@ def copy_starts(
         if len(k) == 0:
             continue
         centres = map_pts.positions[m] - (map_pts.positions[q[k]] - c) @ S.T
-        own = rotation_error_deg(S, np.eye(3)) < distinct_angle_deg
+        own = rotation_error_deg(S, np.eye(3)) < config.distinct_angle_deg
         for centre, share in _agreements(
-            centres, k, weight, total, voxel, min_share, per_rotation, c if own else None
+            centres,
+            k,
+            weight,
+            total,
+            voxel,
+            config.copy_share,
+            config.copies_per_rotation,
+            c if own else None,
         ):
             out.append((make_cam_from_world(R_copy, -R_copy @ centre), voxel, share))
     out.sort(key=lambda s: -s[2])
@@ -87,10 +92,10 @@ def _seen_corners(
     on &= (seg[:, 1] < 0) | matched[np.maximum(seg[:, 1], 0)]
     on &= (codes[:, 0] >= 0) & ((codes[:, 1] >= 0) | (seg[:, 1] < 0))
     x = map_pts.positions @ cam_from_world[:3, :3].T + cam_from_world[:3, 3]
-    front = x[:, 2] > 1e-6
-    uv = x[:, :2] / np.where(front, x[:, 2], 1.0)[:, None] * [camera.fx, camera.fy] + [camera.cx, camera.cy]
+    on &= x[:, 2] > 1e-6
+    uv = project_points(camera, x[on])
     inside = (uv[:, 0] >= 0) & (uv[:, 0] <= camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] <= camera.height)
-    return np.flatnonzero(on & front & inside)
+    return np.flatnonzero(on)[inside]
 
 
 def _turned_keys(codes: np.ndarray, S: np.ndarray, directions: np.ndarray, cos_arm: float) -> np.ndarray:

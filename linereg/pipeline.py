@@ -155,15 +155,16 @@ def register_undistorted(
             )
             for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
-    # copies of what the best pose sees elsewhere in the map: rivals, and the best when one scores more
+    # copies of what the best pose sees elsewhere in the map: rivals the search need not have solved
     with timer("copies"):
-        refined, found = with_copies(refined, found, view, image, camera, config, rotations, regions)
+        seen, found = with_copies(refined, found, view, image, camera, config, rotations, regions)
     space = SearchSpace.of(regions, len(rotations), config)
-    return decide(refined, found, view, image, camera, config, timer, space)
+    return decide(refined, seen, found, view, image, camera, config, timer, space)
 
 
 def decide(
     refined: list[Refinement],
+    seen: list[tuple[Score, np.ndarray]],
     found: list[Found],
     view: MapView,
     image: ImageLines,
@@ -172,7 +173,8 @@ def decide(
     timer: StageTimer,
     space: SearchSpace,
 ) -> Registration:
-    """Returns the Registration of the best refined pose: ``success`` only when it has enough matches,
+    """Returns the Registration of the best refined pose (``seen``: the ``view_score`` of each), with
+    ``success`` only when it has enough matches,
     explains ``min_explained_fraction`` of the image, more than chance would give any of the poses the search
     examined (``space``: ``significance.py``), and every distinct pose either scores below ``(1 - margin)``
     of it or leaves unexplained image lines that the best explains beyond chance while explaining none
@@ -185,7 +187,6 @@ def decide(
     with timer("decide"):
         # the contenders and their rivals scored with what the map's surfaces hide from each: a pose behind a
         # wall, explaining the image with lines it could not see, loses them (the search scores without)
-        seen = [view_score(view, image, camera, r.cam_from_world, config.score) for r in refined]
         order = sorted(range(len(refined)), key=lambda k: -seen[k][0].value)
         best = replace(refined[order[0]], score=seen[order[0]][0])
         # (pose, (its occlusion-aware Score, the segments it sees)): kept for the advantage test below
@@ -364,41 +365,18 @@ def with_copies(
     config: RegisterConfig,
     rotations: Sequence[np.ndarray],
     regions: Sequence[tuple[np.ndarray, np.ndarray]],
-) -> tuple[list[Refinement], list[Found]]:
-    """Returns (refined, found) with the copies of the best refined pose (by the occlusion-aware score)
-    among the found poses (``copy_rivals``) and, where a copy scores more than the best, that copy refined
-    among the refined, whose own copies are then added in turn (up to ``copy_rounds`` times); copies
+) -> tuple[list[tuple[Score, np.ndarray]], list[Found]]:
+    """Returns (the ``view_score`` of each refined pose, found) with the copies of the best refined pose
+    (by that score) among the found poses (``copy_rivals``): rivals only, never the answer (a copy taken
+    as the best when it scored more claimed a demo photo's upside-down twin, the truth unsolved); copies
     under the ``rotations`` searched with camera centres in the ``regions`` searched (what a prior
     admits)."""
-    dc = config.decide
-    values = [view_score(view, image, camera, r.cam_from_world, config.score)[0] for r in refined]
-    done: set[int] = set()
-    for _ in range(dc.copy_rounds):
-        k = int(np.argmax([v.value for v in values]))
-        if k in done:  # the copy refined scores less than the pose it copies
-            break
-        done.add(k)
-        copies = copy_rivals(
-            refined[k].cam_from_world, values[k], view, image, camera, config, rotations, regions
-        )
-        found = found + [Found(T, score, -1) for T, score in copies]
-        best = values[k].value
-        # a copy's score never exceeds the image length it explains
-        better = [
-            (T, view_score(view, image, camera, T, config.score)[0])
-            for T, sc in copies
-            if sc.explained_length > best
-        ]
-        better = [(T, sc) for T, sc in better if sc.value > best]
-        if not better:
-            break
-        T = max(better, key=lambda b: b[1].value)[0]
-        refined = [
-            *refined,
-            refine_pose(image, view.segments, camera, T, config.refine, config.score, view.visible),
-        ]
-        values.append(view_score(view, image, camera, refined[-1].cam_from_world, config.score)[0])
-    return refined, found
+    seen = [view_score(view, image, camera, r.cam_from_world, config.score) for r in refined]
+    k = int(np.argmax([v.value for v, _ in seen]))
+    copies = copy_rivals(
+        refined[k].cam_from_world, seen[k][0], view, image, camera, config, rotations, regions
+    )
+    return seen, found + [Found(T, score, -1) for T, score in copies]
 
 
 def copy_rivals(
@@ -420,19 +398,16 @@ def copy_rivals(
     matched[score.matches(dc.min_cover)[:, 1]] = True
     starts = copy_starts(
         cam_from_world, matched, view.points, view.signatures, view.segments, camera, list(rotations),
-        config.search.arm_angle_deg, dc.distinct_angle_deg, dc.distinct_fraction, dc.copy_share,
-        dc.copies_per_rotation,
+        config.search.arm_angle_deg, dc,
     )  # fmt: skip
-    inside = [
-        (T, size)
-        for T, size, _ in starts
-        if any(np.all((lo <= c) & (c <= hi)) for lo, hi in regions for c in [camera_center(T)])
-    ]
-    solved = solve_all(
-        inside, image, view.segments, camera, config.search, config.score,
-        view.visible,
-    )  # fmt: skip
+    inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
+    solved = solve_all(inside, image, view.segments, camera, config.search, config.score, view.visible)
     return [s for s in solved if s is not None]
+
+
+def _in_regions(point: np.ndarray, regions: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
+    """Returns True if a (3,) point lies in one of the boxes ((3,) low, (3,) high corner)."""
+    return any(bool(np.all((lo <= point) & (point <= hi))) for lo, hi in regions)
 
 
 def turned_rival(

@@ -6,7 +6,7 @@ from test_decide import facade_copies
 import linereg
 from linereg.config import RegisterConfig
 from linereg.copies import copy_starts
-from linereg.geometry import camera_center, make_cam_from_world, rotation_error_deg
+from linereg.geometry import camera_center, rotation_error_deg
 from linereg.localization import map_view
 from linereg.score import image_lines, project_clipped, score_pose
 from linereg.sim.synthetic import look_at
@@ -22,10 +22,9 @@ def starts_of(segments: np.ndarray, pose: np.ndarray, rotations: list[np.ndarray
     score = score_pose(image_lines(lines2d, CAMERA, config.score), segments, CAMERA, pose, config.score)
     matched = np.zeros(len(segments), dtype=bool)
     matched[score.matches(0.5)[:, 1]] = True
-    dc = config.decide
     return copy_starts(
         pose, matched, view.points, view.signatures, segments, CAMERA, rotations,
-        config.search.arm_angle_deg, dc.distinct_angle_deg, dc.distinct_fraction, dc.copy_share, 2,
+        config.search.arm_angle_deg, config.decide,
     )  # fmt: skip
 
 
@@ -47,7 +46,7 @@ def test_a_building_turned_half_round_gives_the_twin_under_the_turned_rotation()
     rotation candidate of the twin, the camera centre is the pose's own turned about that axis."""
     segments, _ = facade_copies()
     pattern = segments[: len(segments) // 2]
-    turn = make_cam_from_world(np.diag([-1.0, -1.0, 1.0]), np.zeros(3))[:3, :3]  # 180 degrees about z
+    turn = np.diag([-1.0, -1.0, 1.0])  # 180 degrees about z
     twin = np.c_[pattern[:, :3] @ turn.T, pattern[:, 3:] @ turn.T] + [60.0, 5.0, 0.0, 60.0, 5.0, 0.0]
     both = np.r_[pattern, twin]
     pose = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
