@@ -337,6 +337,11 @@ class SearchConfig:
     coarse_peaks: int = 8  # ... the best of each rotation are voted again on a finer grid:
     fine_voxels: int = 16  # ... of this many voxels a side
     fine_span: float = 3.0  # ... spanning this many coarse voxels each way
+    # a ray votes only farther than this many coarse voxels from its map point: near a map point the rays
+    # of every image point matched to it and to its neighbours cross whatever the camera is, and every
+    # top peak of a cluttered room's votes lay at a map point (docs/measurements.md); a voxel also counts
+    # each map point once, as it counts each image point once (a camera centre is a matching)
+    min_range_voxels: float = 6.0
     # an image point and a map point may correspond when both arms agree within this under the rotation
     # (vanishing directions are good to a few degrees, and so is a candidate rotation)
     arm_angle_deg: float = 8.0
@@ -344,6 +349,9 @@ class SearchConfig:
     # short to make the image arm (a fragment may be shorter than its map line, not many times longer)
     arm_length_ratio: float = 2.0
     peaks: int = 16  # the fine peaks scoring best (at a tolerance spanning a fine voxel) are solved locally
+    # with a map's surfaces, the fine peaks' quick solves are scored with what they hide while what they
+    # explain unhidden (a bound) reaches this fraction of the best so far (``search._screen``)
+    screen_fraction: float = 0.7
     # a rotation candidate from vanishing directions is off by up to about this: scoring and solving a peak
     # start at a tolerance that covers it
     rotation_slack_deg: float = 1.0
@@ -389,6 +397,9 @@ class DecideConfig:
     # rotation, are solved and are rivals (copies sharing fewer are left to the search)
     copy_share: float = 0.4
     copies_per_rotation: int = 2
+    # ... and so is the best pose orbited by these angles (up, down, left, right) round the point at its
+    # median depth ahead, solved from there: the slope of the valley where a turn and a shift compensate
+    orbit_deg: tuple[float, ...] = (3.0, 6.0)
 
 
 @dataclass(frozen=True)

@@ -142,3 +142,14 @@ def segment_directions(lines: np.ndarray) -> np.ndarray:
     d = lines.shape[1] // 2
     v = lines[:, d:] - lines[:, :d]
     return v / np.maximum(np.linalg.norm(v, axis=1, keepdims=True), 1e-300)
+
+
+def orbited(cam_from_world: np.ndarray, depth_m: float, turn: np.ndarray) -> np.ndarray:
+    """Returns the (4, 4) cam_from_world of a camera moved round the point ``depth_m`` ahead of it on its
+    optical axis and turned by ``turn`` (3, 3, camera frame) so that it keeps looking at that point: the
+    point stays where it was in the image, nearer and farther ones move by their parallax."""
+    ahead = np.array([0.0, 0.0, depth_m])
+    moved = np.eye(4)
+    moved[:3, :3] = turn.T
+    moved[:3, 3] = ahead - turn.T @ ahead
+    return moved @ cam_from_world

@@ -22,7 +22,7 @@ from .config import DecideConfig, RegisterConfig, ScoreConfig
 from .copies import copy_starts
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .geometry import camera_center, rotation_error_deg, rotation_from_vector
+from .geometry import camera_center, orbited, rotation_error_deg, rotation_from_vector
 from .parallel import parallel_clusters
 from .points import Points, image_points, map_gap_m, map_points
 from .priors import Prior, admits, search_region
@@ -144,6 +144,7 @@ def register_undistorted(
             config.search,
             config.score,
             view.visible,
+            None if view.parts is None else lambda T: view_score(view, image, camera, T, config.score)[0],
         )
     if not found:
         return Registration(success=False, reason="no pose explains any image line", timings=timer.finish())
@@ -179,9 +180,10 @@ def decide(
     examined (``space``: ``significance.py``), and every distinct pose either scores below ``(1 - margin)``
     of it or leaves unexplained image lines that the best explains beyond chance while explaining none
     beyond the best that chance would not (``advantage_nfa`` both ways): the
-    other poses found (with the copies of what the best sees elsewhere in the map: ``with_copies``) and
-    the best pose itself turned by small angles (``turned_rivals``), which the search need not have
-    visited."""
+    other poses found (with the copies of what the best sees elsewhere in the map and the best orbited
+    round what it looks at: ``with_copies``) and the best pose itself turned by small angles
+    (``turned_rivals``), which the search need not have visited. A rival that the refinement takes back to
+    the best (``in_basin``) is the same answer."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -205,7 +207,8 @@ def decide(
         rivals: list[tuple[np.ndarray, float, tuple[Score, np.ndarray] | None]] = [
             (T, sc[0].value, sc) for T, sc in scored
         ]
-        rivals.append((*turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config), None))
+        turned = turned_rival(best.cam_from_world, image, seen[order[0]][1], camera, config)
+        rivals.append((*turned, None))
         matches = best.score.matches(dc.min_cover)
         distinct = len(np.unique(matches[:, 1]))  # chance events are per map segment (significance.py)
         nfa = log10_nfa(best.cam_from_world, distinct, seen[order[0]][1], image, camera, config, space)
@@ -229,6 +232,11 @@ def decide(
         for T, value, known in alternatives:
             if value < (1.0 - dc.margin) * best.score.value:
                 break
+            # a pose that the refinement takes back to the best is the best answer less well placed, not
+            # another one (a turn and a shift that compensate along the lines' depth keep the score); a
+            # turn of the whole projection is tested as a turn (the turn test's point is that it need not dip)
+            if T is not turned[0] and in_basin(best.cam_from_world, T, image, view, camera, config):
+                continue
             # a rival within the margin: the best pose is still the answer if what it explains beyond the
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
             # rival explains beyond the best is not: else each holds evidence the other lacks (on a
@@ -267,6 +275,20 @@ def decide(
         alternative_scores=np.array([s for _, s, _ in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
+
+
+def in_basin(
+    best: np.ndarray,
+    other: np.ndarray,
+    image: ImageLines,
+    view: MapView,
+    camera: Camera,
+    config: RegisterConfig,
+) -> bool:
+    """Returns True if refining the pose ``other`` (``refine_pose``) ends where the pose ``best`` is, not
+    distinct from it (``differs``): one answer, found twice."""
+    back = refine_pose(image, view.segments, camera, other, config.refine, config.score, view.visible)
+    return not differs(back.cam_from_world, best, view.segments, config.decide)
 
 
 def map_floor(accuracy_m: float, depth_m: float) -> np.ndarray:
@@ -392,7 +414,8 @@ def copy_rivals(
     """Returns (pose, Score without occlusion) of each copy of what a pose (its occlusion-aware ``score``)
     matched elsewhere in the map under the (3, 3) ``rotations`` (``copies.py``) with camera centres inside
     one of the ``regions`` (boxes (low, high)), solved locally as the search solves its peaks: the rivals
-    a symmetric or repeated map makes, found from the map."""
+    a symmetric or repeated map makes, found from the map; and the pose orbited by ``orbit_deg`` round the
+    point it looks at, solved locally: the poses along the valley where a turn and a shift compensate."""
     dc = config.decide
     matched = np.zeros(len(view.segments), dtype=bool)
     matched[score.matches(dc.min_cover)[:, 1]] = True
@@ -401,6 +424,15 @@ def copy_rivals(
         config.search.arm_angle_deg, dc,
     )  # fmt: skip
     inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
+    # the pose orbited round the scene point it looks at (a turn and a shift that compensate along the
+    # lines' depth, which the turned rival, turning about the camera centre, does not try)
+    depth = depth_of(view.segments[matched], cam_from_world) if matched.any() else 1.0
+    for angle in dc.orbit_deg:
+        for axis in np.r_[np.eye(2), -np.eye(2)]:
+            turn = rotation_from_vector(np.radians(angle) * np.r_[axis, 0.0])
+            start = orbited(cam_from_world, depth, turn)
+            if _in_regions(camera_center(start), regions):
+                inside.append((start, dc.distinct_fraction * depth))
     solved = solve_all(inside, image, view.segments, camera, config.search, config.score, view.visible)
     return [s for s in solved if s is not None]
 

@@ -16,6 +16,7 @@ to the score's own. What comes out are scored poses; the composer refines the be
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numba
@@ -23,7 +24,7 @@ import numpy as np
 
 from .camera import Camera
 from .config import ScoreConfig, SearchConfig
-from .geometry import camera_center, invert, line_coefficients, make_cam_from_world
+from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_error_deg
 from .line_factor import LineProjection
 from .points import Points
 from .score import ImageLines, Score, grow, score_pose
@@ -68,6 +69,7 @@ def search(
     config: SearchConfig,
     score_config: ScoreConfig,
     visible: np.ndarray | None = None,
+    seen_score: Callable[[np.ndarray], Score] | None = None,
 ) -> tuple[list[Found], SearchStats]:
     """Returns (the solved poses, best score first; SearchStats) for camera centres in ``regions`` (boxes
     ((3,) low, (3,) high corner) in world metres, each voted on its own grid: a box near the map gets fine
@@ -75,7 +77,10 @@ def search(
 
     image, image_pts: the image side; lines3d, map_pts, signatures: (M, 6) world map segments, their points
     and those grouped by arm directions (``map_signatures``);
-    camera: undistorted; visible: (M,) bool of segments that take part in the score (None: all).
+    camera: undistorted; visible: (M,) bool of segments that take part in the score (None: all);
+    seen_score: a pose's Score with what the map's surfaces hide from it (``pipeline.view_score``; None: the
+    map hides nothing): the poses are ranked by it (a pose of the truth is scored with the facades behind
+    the building hidden, the same pose unhidden can score below zero).
     """
     boxes = []
     for lo, hi in regions:
@@ -97,10 +102,12 @@ def search(
             rays_of[r] = len(rays[0])
             for grid in grids:
                 # coarse votes over the whole region, then finer ones around the best coarse voxels
-                grid.vote(rays, map_pts.positions, image_pts.weight)
+                near = config.min_range_voxels * grid.voxel
+                grid.vote(rays, map_pts.positions, image_pts.weight, near)
                 centres, _ = _peaks(grid.votes, grid.lo, grid.voxel, config.coarse_peaks)
                 half = config.fine_span * grid.voxel
-                for centre, v, size in fine.vote(centres, half, rays, map_pts.positions, image_pts.weight):
+                fine_votes = fine.vote(centres, half, rays, map_pts.positions, image_pts.weight, near)
+                for centre, v, size in fine_votes:
                     by_rotation[r].append((v, r, centre, size))
 
     run_parallel(vote, workers)
@@ -116,15 +123,69 @@ def search(
     solved = solve_all(starts, image, lines3d, camera, quick, score_config, visible)
     stats.solved += len(peaks)
     screened = [
-        (s[1].value, r, s[0], size) for s, (_, r, _, size) in zip(solved, peaks, strict=True) if s is not None
+        (s[1], r, s[0], size) for s, (_, r, _, size) in zip(solved, peaks, strict=True) if s is not None
     ]
-    screened.sort(key=lambda p: -p[0])
-    best = screened[: config.peaks]
+    best = _screen(screened, config, seen_score)
     starts = [(pose, 0.5 * size) for _, _, pose, size in best]
     solved = solve_all(starts, image, lines3d, camera, config, score_config, visible)
-    found = [Found(s[0], s[1], r) for s, (_, r, _, _) in zip(solved, best, strict=True) if s is not None]
+    found = [
+        Found(s[0], s[1] if seen_score is None else seen_score(s[0]), r)
+        for s, (_, r, _, _) in zip(solved, best, strict=True)
+        if s is not None
+    ]
     found.sort(key=lambda p: -p.score.value)
     return found, stats
+
+
+_Screened = tuple[Score, int, np.ndarray, float]  # (score, rotation, pose, voxel size) of a quick solve
+
+
+def _screen(
+    screened: list[_Screened], config: SearchConfig, seen_score: Callable[[np.ndarray], Score] | None
+) -> list[_Screened]:
+    """Returns the ``peaks`` quick solves to solve fully: the best scoring, by ``seen_score`` where given.
+
+    A pose's explained length with every map segment bounds its score with what the surfaces hide
+    (hiding removes map lines: it can only lower what they explain and what they predict in empty areas),
+    so the poses are scored with occlusion in the order of that bound until it falls below
+    ``screen_fraction`` of the best so far: none left out could come that close. The places left are
+    filled in the order of the bound."""
+    if seen_score is None:
+        return _one_each(sorted(screened, key=lambda p: -p[0].value), config)
+    bound = np.array([s[0].explained_length for s in screened])
+    order = np.argsort(-bound, kind="stable")
+    seen: list[_Screened] = []
+    top = -np.inf
+    for k in order:
+        if bound[k] < config.screen_fraction * top:
+            break
+        score, r, pose, size = screened[k]
+        score = seen_score(pose)
+        top = max(top, score.value)
+        seen.append((score, r, pose, size))
+    seen.sort(key=lambda p: -p[0].value)
+    rest = [screened[k] for k in order[len(seen) :]]
+    return _one_each(seen + rest, config)
+
+
+def _one_each(ranked: list[_Screened], config: SearchConfig) -> list[_Screened]:
+    """Returns the first ``peaks`` of the ranked quick solves that are not the same pose as a better one
+    kept: rotations within ``rotation_slack_deg`` and centres within the larger fine voxel (the full solve
+    would take both to one place; peaks of one camera often converge together and took the places of the
+    poses the decision needs as rivals)."""
+    kept: list[_Screened] = []
+    for item in ranked:
+        _, _, pose, size = item
+        if any(
+            rotation_error_deg(pose[:3, :3], other[:3, :3]) <= config.rotation_slack_deg
+            and np.linalg.norm(camera_center(pose) - camera_center(other)) <= max(size, other_size)
+            for _, _, other, other_size in kept
+        ):
+            continue
+        kept.append(item)
+        if len(kept) == config.peaks:
+            break
+    return kept
 
 
 def solve_all(
@@ -201,17 +262,22 @@ class _Grid:
         self.lo, self.hi, self.voxel, self.dims = lo, hi, voxel, dims
         self.accumulator = np.zeros(int(np.prod(dims)), np.float32)
         self.stamp = np.full(len(self.accumulator), -1, np.int32)  # ids of one search stay far below 2**31
-        self.next_id = 0
+        self.stamp_map = np.full(len(self.accumulator), -1, np.int32)
+        self.next_id = self.next_map_id = 0
 
-    def vote(self, rays: tuple[np.ndarray, ...], positions: np.ndarray, weight: np.ndarray) -> None:
-        """Clears the votes, then lets every ray ``(k, m, lambda_max, direction)`` vote where it crosses."""
+    def vote(
+        self, rays: tuple[np.ndarray, ...], positions: np.ndarray, weight: np.ndarray, lam_min: float
+    ) -> None:
+        """Clears the votes, then lets every ray ``(k, m, lambda_max, direction)`` vote where it crosses,
+        farther than ``lam_min`` from its map point."""
         self.accumulator[:] = 0.0
         k, m, lam_max, direction = rays
         _vote_rays(
             k, m, lam_max, direction, positions, weight, self.lo, self.hi, self.voxel, self.dims,
-            self.accumulator, self.stamp, self.next_id,
+            self.accumulator, self.stamp, self.stamp_map, self.next_id, self.next_map_id, lam_min,
         )  # fmt: skip
         self.next_id += int(k.max()) + 1 if len(k) else 0
+        self.next_map_id += len(positions)
 
     @property
     def votes(self) -> np.ndarray:
@@ -226,7 +292,8 @@ class _FineGrids:
         self.side = side
         self.accumulator = np.zeros((count, side**3), np.float32)
         self.stamp = np.full((count, side**3), -1, np.int32)
-        self.next_id = 0
+        self.stamp_map = np.full((count, side**3), -1, np.int32)
+        self.next_id = self.next_map_id = 0
 
     def vote(
         self,
@@ -235,6 +302,7 @@ class _FineGrids:
         rays: tuple[np.ndarray, ...],
         positions: np.ndarray,
         weight: np.ndarray,
+        lam_min: float,
     ) -> list[tuple[np.ndarray, float, float]]:
         """Returns (centre, votes, voxel size) of the best voxel (``_peaks``) of the grid spanning
         ``centre +- half`` round each (B, 3) centre, for those with votes."""
@@ -247,9 +315,10 @@ class _FineGrids:
         k, m, lam_max, direction = rays
         _vote_boxes(
             k, m, lam_max, direction, positions, weight, lo, hi, voxel, dims, self.accumulator,
-            self.stamp, self.next_id,
+            self.stamp, self.stamp_map, self.next_id, self.next_map_id, lam_min,
         )  # fmt: skip
         self.next_id += int(k.max()) + 1 if len(k) else 0
+        self.next_map_id += len(positions)
         out = []
         for b in range(n):
             best, votes = _peaks(self.accumulator[b].reshape(dims), lo[b], float(voxel[b]), 1)
@@ -305,8 +374,10 @@ def _direction_at(d: np.ndarray, qx: float, qy: float, K: np.ndarray) -> tuple[f
 @numba.njit(cache=True, nogil=True)
 def _ray(
     k: int,
+    m: int,
     Xm: np.ndarray,
     ray: np.ndarray,
+    lam_min: float,
     lam_max: float,
     weight: float,
     lo: np.ndarray,
@@ -315,9 +386,11 @@ def _ray(
     dims: np.ndarray,
     accumulator: np.ndarray,
     stamp: np.ndarray,
+    stamp_map: np.ndarray,
 ) -> int:
-    """Votes image point k's weight along ``Xm - lambda ray``, 0 < lambda <= lam_max, inside [lo, hi]."""
-    lam0, lam1 = 0.0, lam_max
+    """Votes image point k's weight along ``Xm - lambda ray``, lam_min < lambda <= lam_max, inside [lo, hi],
+    in the voxels where neither image point k nor map point m has voted yet (ids ``k`` and ``m``)."""
+    lam0, lam1 = lam_min, lam_max
     for axis in range(3):  # the part of the ray inside the region (slab method)
         d = -ray[axis]
         if d == 0.0:
@@ -338,8 +411,9 @@ def _ray(
         iy = min(max(int(oy - s * ry), 0), ny - 1)
         iz = min(max(int(oz - s * rz), 0), nz - 1)
         v = (ix * ny + iy) * nz + iz
-        if stamp[v] != k:
+        if stamp[v] != k and stamp_map[v] != m:
             stamp[v] = k
+            stamp_map[v] = m
             accumulator[v] += weight
     return 1
 
@@ -457,13 +531,18 @@ def _vote_rays(
     dims: np.ndarray,
     accumulator: np.ndarray,
     stamp: np.ndarray,
+    stamp_map: np.ndarray,
     first_id: int,
+    first_map_id: int,
+    lam_min: float,
 ) -> None:
     for p in range(len(k)):
         _ray(
             first_id + k[p],
+            first_map_id + m[p],
             X[m[p]],
             direction[k[p]],
+            lam_min,
             lam_max[p],
             weight[k[p]],
             lo,
@@ -472,6 +551,7 @@ def _vote_rays(
             dims,
             accumulator,
             stamp,
+            stamp_map,
         )
 
 
@@ -489,7 +569,10 @@ def _vote_boxes(
     dims: np.ndarray,
     accumulator: np.ndarray,
     stamp: np.ndarray,
+    stamp_map: np.ndarray,
     first_id: int,
+    first_map_id: int,
+    lam_min: float,
 ) -> None:  # pragma: no cover - numba
     """``_vote_rays`` into each of the grids over boxes [lo[b], hi[b]] of voxels ``voxel[b]`` (rows of
     ``accumulator`` and ``stamp``); a ray whose stretch stays outside a box's circumscribed sphere skips that
@@ -509,8 +592,10 @@ def _vote_boxes(
                 continue
             _ray(
                 first_id + k[p],
+                first_map_id + m[p],
                 Xm,
                 ray,
+                lam_min,
                 far,
                 weight[k[p]],
                 lo[b],
@@ -519,6 +604,7 @@ def _vote_boxes(
                 dims,
                 accumulator[b],
                 stamp[b],
+                stamp_map[b],
             )
 
 
@@ -654,7 +740,31 @@ def solve_locally(
     Rounds: the score's covering pairs at a tolerance spanning the uncertainty (the pixels ``size_m`` moves
     the median matched point), one per image and per map segment (``Score.one_to_one``), then the pose
     minimising their endpoint-to-line distances; the tolerance halves each round down to the score's own.
+    The start itself is scored too, and the better of it and the solved pose returned: at a tolerance
+    spanning a coarse voxel, wrong pairs can pull a start lying on the truth away from it (a demo photo's
+    start 0.2 m from the truth was solved to 1.3 m / 4 deg off, and dropped).
     """
+    start = score_pose(image, lines3d, camera, cam_from_world, score_config, visible)
+    best = (cam_from_world, start) if start.value > 0 else None
+    for size, slack in ((size_m, config.rotation_slack_deg), (0.0, 0.0)):
+        tight = replace(config, rotation_slack_deg=slack)
+        solved = _solve_rounds(image, lines3d, camera, cam_from_world, size, tight, score_config, visible)
+        if solved is not None and (best is None or solved[1].value > best[1].value):
+            best = solved
+    return best
+
+
+def _solve_rounds(
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    size_m: float,
+    config: SearchConfig,
+    score_config: ScoreConfig,
+    visible: np.ndarray | None,
+) -> tuple[np.ndarray, Score] | None:
+    """Returns ``solve_locally``'s rounds from a start (the pose they end at and its Score), or None."""
     pose = cam_from_world
     f = max(camera.fx, camera.fy)
     tolerance = score_config.distance_px + _pixels_moved(lines3d, camera, pose, size_m)

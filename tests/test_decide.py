@@ -5,8 +5,9 @@ import numpy as np
 
 import linereg
 from linereg.config import RegisterConfig
-from linereg.geometry import rotation_error_deg
-from linereg.pipeline import turned_rival
+from linereg.geometry import camera_center, make_cam_from_world, rotation_error_deg, rotation_from_vector
+from linereg.localization import map_view
+from linereg.pipeline import in_basin, turned_rival
 from linereg.score import image_lines, project_clipped, score_pose, score_projected, shifted_values
 from linereg.sim.synthetic import look_at, paper_scene
 
@@ -173,3 +174,28 @@ def test_two_poses_each_explaining_lines_the_other_cannot_are_ambiguous():
     reg = linereg.localize_segments(lines2d, linereg.LineMap.from_segments(segments), camera)
     assert not reg.success
     assert reg.reason.startswith("ambiguous") and "explains lines the best does not" in reg.reason, reg.reason
+
+
+def test_a_pose_the_refinement_takes_back_is_no_rival_and_a_copy_is():
+    """Turned by 2.5 degrees about the middle of the wall it faces, 20 m ahead (so shifted by 0.9 m), the
+    camera sees the wall's grid nearly where it was, and refining from there ends at the truth: the same
+    answer (``in_basin``). The same camera looking at the facade's copy 20 m along it scores as well and
+    refines to itself: another answer."""
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    truth = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    segments = door_facade(0)
+    lines2d, _ = project_clipped(segments, camera, truth, 0.05, None)
+    config = RegisterConfig()
+    view = map_view(linereg.LineMap.from_segments(segments), None, config)
+    image = image_lines(lines2d, camera, config.score)
+    pivot = np.array([20.0, 0.0, 1.5])
+    turn = rotation_from_vector(np.radians([0.0, 0.0, 2.5]))  # about the vertical, through the pivot
+    centre = pivot + turn @ (camera_center(truth) - pivot)
+    R = truth[:3, :3] @ turn.T
+    orbit = make_cam_from_world(R, -R @ centre)
+    copy = truth.copy()
+    copy[:3, 3] -= truth[:3, :3] @ np.array([0.0, 20.0, 0.0])  # the camera 20 m along y
+    for other, expected in ((orbit, True), (copy, False)):
+        value = score_pose(image, segments, camera, other, config.score).value
+        assert value > 0.5 * score_pose(image, segments, camera, truth, config.score).value
+        assert in_basin(truth, other, image, view, camera, config) == expected

@@ -11,8 +11,8 @@ import linereg
 from linereg.camera import Camera
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, pose_errors, rotation_from_vector
-from linereg.score import image_lines, project_clipped, project_segments, score_pose
-from linereg.search import _FineGrids, _Grid, _peaks, _top_pooled, solve_locally, transform_depths
+from linereg.score import Score, image_lines, project_clipped, project_segments, score_pose
+from linereg.search import _FineGrids, _Grid, _peaks, _screen, _top_pooled, solve_locally, transform_depths
 from linereg.sim.synthetic import clip_to_box, paper_scene
 
 
@@ -150,15 +150,72 @@ def test_the_fine_grids_get_the_votes_of_one_grid_each(rng):
     half = 1.5
     fine = _FineGrids(len(centres), side)
     for _ in range(2):  # the stamps of one pass never hide votes of the next
-        peaks = fine.vote(centres, half, rays, positions, weight)
+        peaks = fine.vote(centres, half, rays, positions, weight, 0.7)
     expected = []
     for b, centre in enumerate(centres):
         lo, hi = centre - half, centre + half
         grid = _Grid(lo, hi, float(np.max(hi - lo)) / side, np.full(3, side, dtype=np.int64))
-        grid.vote(rays, positions, weight)
+        grid.vote(rays, positions, weight, 0.7)
         np.testing.assert_array_equal(fine.accumulator[b], grid.accumulator)
         best, votes = _peaks(grid.votes, grid.lo, grid.voxel, 1)
         expected += [(c, float(v), grid.voxel) for c, v in zip(best, votes, strict=True)]
     assert len(peaks) == len(expected) > 0
     for (c, v, size), (ce, ve, se) in zip(peaks, expected, strict=True):
         assert np.array_equal(c, ce) and v == ve and size == se
+
+
+def test_the_screen_ranks_by_what_the_surfaces_hide_and_skips_only_poses_that_cannot_come_close():
+    """Quick solves whose explained lengths bound their scores with occlusion at 100, 90, 80, 50, 20, 10:
+    the pose whose unhidden score is negative (the facades behind the building count against it) is
+    best once they are hidden; scoring stops at the bound 50 < 0.7 x 95 (nothing below could come close),
+    and the places left are filled in the bound's order."""
+    bounds = [100.0, 90.0, 80.0, 50.0, 20.0, 10.0]
+    unhidden = [-50.0, 80.0, 70.0, 40.0, 10.0, 5.0]
+    hidden = [95.0, 30.0, 60.0, 45.0, 15.0, 8.0]
+
+    def score(value: float, explained: float) -> Score:
+        return Score(value, np.array([explained]), 0.0, np.zeros((0, 2), np.int64), np.zeros((0, 2)))
+
+    poses = [make_cam_from_world(np.eye(3), [0.0, 0.0, float(k)]) for k in range(6)]  # 1 m apart
+    screened = [(score(u, b), 0, T, 0.5) for u, b, T in zip(unhidden, bounds, poses, strict=True)]
+    calls = []
+
+    def seen_score(T: np.ndarray) -> Score:
+        k = round(T[2, 3])
+        calls.append(k)
+        return score(hidden[k], hidden[k])
+
+    config = replace(RegisterConfig().search, peaks=4, screen_fraction=0.7)
+    kept = _screen(screened, config, seen_score)
+    assert [round(p[2][2, 3]) for p in kept] == [0, 2, 1, 3]
+    assert calls == [0, 1, 2]
+    assert [p[0].value for p in kept[:3]] == [95.0, 60.0, 30.0]
+    unseen = _screen(screened, config, None)  # a map without surfaces: the scores as they are
+    assert [round(p[2][2, 3]) for p in unseen] == [1, 2, 3, 4]
+
+
+def test_rays_through_one_map_point_make_no_peak_at_it(rng):
+    """Every image point whose arms agree with a map point's votes along a ray from it: near the point all
+    those rays cross, whatever the camera. A voxel counts each map point once and no ray votes within
+    ``lam_min`` of its map point, so the camera centre, where ten true pairs meet, outvotes the map point
+    that forty image points were paired with."""
+    centre = np.array([0.35, -0.15, 0.05])  # a voxel centre: every true ray samples that voxel
+    positions = np.r_[[[1.5, 1.5, 1.5]], rng.uniform(-2.0, 2.0, (10, 3))]  # row 0: the crowded map point
+    clutter = rng.normal(size=(40, 3))
+    truth = positions[1:] - centre
+    directions = np.r_[clutter, truth] / np.linalg.norm(np.r_[clutter, truth], axis=1, keepdims=True)
+    k = np.arange(50)
+    m = np.r_[np.zeros(40, np.int64), np.arange(1, 11)]
+    rays = (k, m, np.full(50, 10.0), directions)
+    lo, hi = np.full(3, -3.0), np.full(3, 3.0)
+    grid = _Grid(lo, hi, 0.1, np.full(3, 60, dtype=np.int64))
+    grid.vote(rays, positions, np.ones(50), 0.5)
+    votes = grid.votes
+    assert votes.max() == 10.0
+    at = tuple(((centre - lo) / 0.1).astype(int))
+    assert votes[at[0] - 1 : at[0] + 2, at[1] - 1 : at[1] + 2, at[2] - 1 : at[2] + 2].max() == 10.0
+    cells = lo + (np.indices(votes.shape).reshape(3, -1).T + 0.5) * 0.1
+    near = np.linalg.norm(cells - positions[0], axis=1) < 0.5 - 0.1
+    assert votes.reshape(-1)[near].max() == 0.0
+    grid.vote(rays, positions, np.ones(50), 0.0)  # without the near limit: still one vote per map point
+    assert grid.votes.max() == 10.0
