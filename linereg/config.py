@@ -400,6 +400,12 @@ class DecideConfig:
     # ... and so is the best pose orbited by these angles (up, down, left, right) round the point at its
     # median depth ahead, solved from there: the slope of the valley where a turn and a shift compensate
     orbit_deg: tuple[float, ...] = (3.0, 6.0)
+    # a rival within the margin is told apart at a tolerance this fraction of the score's distance where the
+    # best keeps at least ``sharp_keep`` of its score (its lines lie that close: the map is accurate there)
+    # and the rival scores below (1 - margin) of the best: a turn of 3 deg round a facade 20 m away keeps
+    # its lines within 4 px but not within 1 (measured on the demo, docs/measurements.md, session 25)
+    sharp_fraction: float = 0.25
+    sharp_keep: float = 0.5
 
 
 @dataclass(frozen=True)

@@ -183,7 +183,8 @@ def decide(
     other poses found (with the copies of what the best sees elsewhere in the map and the best orbited
     round what it looks at: ``with_copies``) and the best pose itself turned by small angles
     (``turned_rivals``), which the search need not have visited. A rival that the refinement takes back to
-    the best (``in_basin``) is the same answer."""
+    the best (``in_basin``) is the same answer; one that falls below the margin at ``sharp_fraction`` of the
+    score's distance, where the best keeps ``sharp_keep`` of its score, is a less precise fit."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -229,6 +230,7 @@ def decide(
             f"to {distinct} map segments, as 10^{nfa:.1f} chance poses among those searched would"
         )
     else:
+        sharp: float | None = None  # the best's ``fine_value``, when a rival needs it
         for T, value, known in alternatives:
             if value < (1.0 - dc.margin) * best.score.value:
                 break
@@ -236,6 +238,13 @@ def decide(
             # another one (a turn and a shift that compensate along the lines' depth keep the score); a
             # turn of the whole projection is tested as a turn (the turn test's point is that it need not dip)
             if T is not turned[0] and in_basin(best.cam_from_world, T, image, view, camera, config):
+                continue
+            # where the best's lines lie closer than the score's distance, a rival is judged at that precision
+            if sharp is None:
+                sharp = fine_value(view, image, camera, best.cam_from_world, config)
+            if sharp >= dc.sharp_keep * best.score.value and (
+                fine_value(view, image, camera, T, config) < (1.0 - dc.margin) * sharp
+            ):
                 continue
             # a rival within the margin: the best pose is still the answer if what it explains beyond the
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
@@ -289,6 +298,16 @@ def in_basin(
     distinct from it (``differs``): one answer, found twice."""
     back = refine_pose(image, view.segments, camera, other, config.refine, config.score, view.visible)
     return not differs(back.cam_from_world, best, view.segments, config.decide)
+
+
+def fine_value(
+    view: MapView, image: ImageLines, camera: Camera, cam_from_world: np.ndarray, config: RegisterConfig
+) -> float:
+    """Returns a pose's occlusion-aware score at ``sharp_fraction`` of the score's distance (the image's
+    candidate pairs, listed for the full distance, hold those of a smaller one)."""
+    sc = config.score
+    fine = replace(sc, distance_px=config.decide.sharp_fraction * sc.distance_px)
+    return view_score(view, image, camera, cam_from_world, fine)[0].value
 
 
 def map_floor(accuracy_m: float, depth_m: float) -> np.ndarray:

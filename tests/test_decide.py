@@ -7,7 +7,7 @@ import linereg
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, rotation_error_deg, rotation_from_vector
 from linereg.localization import map_view
-from linereg.pipeline import in_basin, turned_rival
+from linereg.pipeline import fine_value, in_basin, turned_rival, view_score
 from linereg.score import image_lines, project_clipped, score_pose, score_projected, shifted_values
 from linereg.sim.synthetic import look_at, paper_scene
 
@@ -199,3 +199,32 @@ def test_a_pose_the_refinement_takes_back_is_no_rival_and_a_copy_is():
         value = score_pose(image, segments, camera, other, config.score).value
         assert value > 0.5 * score_pose(image, segments, camera, truth, config.score).value
         assert in_basin(truth, other, image, view, camera, config) == expected
+
+
+def test_a_rival_as_good_at_the_scores_distance_falls_behind_where_the_best_is_sharp():
+    """The camera 28 m from the window wall with a frame 8 m before it, orbited by 1 degree round the wall's
+    middle (shifted 0.5 m): the frame's lines move by their parallax, ~2 px, within the score's 4 px, so
+    it scores within the margin, but not within 1 px, where the true pose, whose lines are exact, keeps
+    its score: the rule ``decide`` tells them apart by."""
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    truth = look_at(np.array([-8.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    frame = [[12.0, y, 0.0, 12.0, y, 3.0] for y in (-3.0, -1.5, 1.5, 3.0)] + [
+        [12.0, -3.0, 3.0, 12.0, 3.0, 3.0]
+    ]
+    segments = np.vstack([door_facade(0), frame])
+    lines2d, _ = project_clipped(segments, camera, truth, 0.05, None)
+    config = RegisterConfig()
+    dc = config.decide
+    view = map_view(linereg.LineMap.from_segments(segments), None, config)
+    image = image_lines(lines2d, camera, config.score)
+    pivot = np.array([20.0, 0.0, 1.5])
+    turn = rotation_from_vector(np.radians([0.0, 0.0, 1.0]))
+    centre = pivot + turn @ (camera_center(truth) - pivot)
+    R = truth[:3, :3] @ turn.T
+    orbit = make_cam_from_world(R, -R @ centre)
+    best = view_score(view, image, camera, truth, config.score)[0].value
+    rival = view_score(view, image, camera, orbit, config.score)[0].value
+    assert rival >= (1.0 - dc.margin) * best
+    sharp = fine_value(view, image, camera, truth, config)
+    assert sharp >= dc.sharp_keep * best
+    assert fine_value(view, image, camera, orbit, config) < (1.0 - dc.margin) * sharp
