@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import itertools
 from typing import Any
 
 import numpy as np
@@ -21,21 +22,55 @@ def drop_near(
 
 def along(segments: np.ndarray, reference: np.ndarray, distance: np.ndarray, angle_deg: float) -> np.ndarray:
     """Returns (k,) bool: does each (k, 6) segment run along one of the (r, 6) reference segments (both its
-    ends within (k,) ``distance`` of it, its direction within angle_deg)?"""
+    ends within (k,) ``distance`` of it, its direction within angle_deg)?
+
+    Only the pairs whose first end lies near a reference (``_near_references``) are measured: a dense
+    (k, r, 3) test of every pair took a second for a room's thousands of point edges. The measured pairs
+    give the same answers, their numbers computed the same way.
+    """
     if len(segments) == 0 or len(reference) == 0:
         return np.zeros(len(segments), dtype=bool)
-    distance = np.asarray(distance)[:, None]
+    distance = np.broadcast_to(np.asarray(distance, dtype=np.float64), (len(segments),))
     r0, r1 = reference[:, :3], reference[:, 3:]
     rlen = np.linalg.norm(r1 - r0, axis=1)
     rdir = (r1 - r0) / rlen[:, None]
-    near = np.ones((len(segments), len(reference)), dtype=bool)
-    for end in (segments[:, :3], segments[:, 3:]):  # both endpoints within distance of the reference
-        t = np.clip(np.einsum("srj,rj->sr", end[:, None] - r0[None], rdir), -distance, rlen + distance)
-        near &= np.linalg.norm(end[:, None] - r0[None] - t[..., None] * rdir[None], axis=2) <= distance
     sdir = segments[:, 3:] - segments[:, :3]
     sdir /= np.linalg.norm(sdir, axis=1, keepdims=True)
-    near &= np.abs(sdir @ rdir.T) >= np.cos(np.radians(angle_deg))
-    return np.asarray(near.any(axis=1))
+    parallel = np.abs(sdir @ rdir.T) >= np.cos(np.radians(angle_deg))
+    s, r = _near_references(segments[:, :3], r0, rdir, rlen, distance)
+    keep = parallel[s, r]
+    s, r = s[keep], r[keep]
+    near = np.ones(len(s), dtype=bool)
+    for end in (segments[:, :3], segments[:, 3:]):  # both endpoints within distance of the reference
+        rel = end[s] - r0[r]
+        t = np.clip(np.einsum("pj,pj->p", rel, rdir[r]), -distance[s], rlen[r] + distance[s])
+        near &= np.linalg.norm(rel - t[:, None] * rdir[r], axis=1) <= distance[s]
+    out = np.zeros(len(segments), dtype=bool)
+    out[s[near]] = True
+    return out
+
+
+def _near_references(
+    ends: np.ndarray, r0: np.ndarray, rdir: np.ndarray, rlen: np.ndarray, distance: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((q,) segment, (q,) reference) distinct pairs, a superset of those whose (k, 3) ``ends`` lie
+    within (k,) ``distance`` of the reference's line clipped to [-distance, length + distance].
+
+    References are sampled every ``step``: such an end lies within distance + step / 2 of a sample.
+    """
+    reach = float(distance.max())
+    step = max(4.0 * reach, 1e-3)
+    count = np.ceil((rlen + 2.0 * reach) / step).astype(np.int64) + 1
+    ref = np.repeat(np.arange(len(r0)), count)
+    pos = np.arange(len(ref)) - np.repeat(np.cumsum(count) - count, count)
+    samples = r0[ref] + (np.minimum(pos * step, rlen[ref] + 2.0 * reach) - reach)[:, None] * rdir[ref]
+    # a hair wider: rounding must not decide whether a pair is measured
+    radius = (distance + 0.5 * step) * (1.0 + 1e-9) + 1e-9
+    found = cKDTree(samples).query_ball_point(ends, radius, return_sorted=False)
+    sizes = np.fromiter(map(len, found), np.int64, len(found))
+    hits = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
+    key = np.unique(np.repeat(np.arange(len(ends)), sizes) * len(r0) + ref[hits])
+    return key // len(r0), key % len(r0)
 
 
 def merge_collinear(
