@@ -6,6 +6,8 @@ over the stretch where both regions have points near it, reaching it from one si
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -32,8 +34,8 @@ def crease_segments(
     boxes = {
         r: (points[members[r]].min(axis=0), points[members[r]].max(axis=0)) for r in np.unique(pairs[keep])
     }
-    trees: dict[int, cKDTree] = {}
     share = config.crease_one_sided
+    lines = []  # (a, b, origin, direction, span, cell) of each pair's line inside both boxes
     for (a, b), direction in zip(pairs[keep], directions[keep] / sines[keep, None], strict=True):
         na, nb = planes.normals[a], planes.normals[b]
         cell = max(cells[a], cells[b])
@@ -42,10 +44,11 @@ def crease_segments(
         rhs = [na @ planes.centroids[a], nb @ planes.centroids[b], mid]
         origin = np.linalg.solve(np.stack([na, nb, direction]), rhs)
         span = _overlap(boxes[a], boxes[b], origin, direction, 3 * cell)
-        if span is None:
-            continue
-        ta, perp_a = _near_line(points, members[a], trees, a, origin, direction, span, 3 * cell)
-        tb, perp_b = _near_line(points, members[b], trees, b, origin, direction, span, 3 * cell)
+        if span is not None:
+            lines.append((a, b, origin, direction, span, cell))
+    near = _near_lines(points, members, lines)
+    for k, (_, _, origin, direction, _, cell) in enumerate(lines):
+        (ta, perp_a), (tb, perp_b) = near[k, 0], near[k, 1]
         for t0, t1 in _common_runs(ta, tb, cell, config):
             if _one_sided(ta, perp_a, t0, t1, share) and _one_sided(tb, perp_b, t0, t1, share):
                 out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
@@ -80,24 +83,51 @@ def _overlap(box_a, box_b, origin: np.ndarray, direction: np.ndarray, margin: fl
     return (t0, t1) if t1 > t0 else None
 
 
+def _near_lines(
+    points: np.ndarray, members: list[np.ndarray], lines: list[tuple]
+) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
+    """Returns {(line k, side 0 / 1): ((n,) line parameters, (n, 3) offsets from the line)} of the points of
+    region a (side 0) and b (side 1) of each of the ``lines`` (a, b, origin, direction, (t0, t1) span, cell)
+    within 3 cells of the line's span.
+
+    A region's lines are looked up together, one KD-tree query of all their samples (a room's regions meet
+    in thousands of pairs: one query each cost more than the search).
+    """
+    jobs: dict[int, list[tuple[int, int]]] = {}
+    for k, line in enumerate(lines):
+        for side in (0, 1):
+            jobs.setdefault(int(line[side]), []).append((k, side))
+    out = {}
+    for region, wanted in jobs.items():
+        member = members[region]
+        samples, radii, job_of = [], [], []
+        for j, (k, _) in enumerate(wanted):
+            _, _, origin, direction, span, cell = lines[k]
+            radius = 3 * cell
+            at = origin + np.outer(np.arange(span[0], span[1] + radius, radius), direction)
+            samples.append(at)
+            radii.append(np.full(len(at), 1.5 * radius))
+            job_of.append(np.full(len(at), j))
+        tree = cKDTree(points[member])
+        found = tree.query_ball_point(np.concatenate(samples), np.concatenate(radii), return_sorted=False)
+        sizes = np.fromiter(map(len, found), np.int64, len(found))
+        hits = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
+        # distinct points of each line, in increasing order
+        key = np.unique(np.repeat(np.concatenate(job_of), sizes) * len(member) + hits)
+        bounds = np.searchsorted(key, np.arange(len(wanted) + 1) * len(member))
+        for j, (k, side) in enumerate(wanted):
+            _, _, origin, direction, _, cell = lines[k]
+            idx = key[bounds[j] : bounds[j + 1]] - j * len(member)
+            out[k, side] = _near_line(points[member[idx]], origin, direction, 3 * cell)
+    return out
+
+
 def _near_line(
-    points: np.ndarray,
-    member: np.ndarray,
-    trees: dict[int, cKDTree],
-    region: int,
-    origin: np.ndarray,
-    direction: np.ndarray,
-    span: tuple[float, float],
-    radius: float,
+    near: np.ndarray, origin: np.ndarray, direction: np.ndarray, radius: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((k,) line parameters, (k, 3) offsets from the line) of the region's points within
-    ``radius`` of the line's span."""
-    if region not in trees:
-        trees[region] = cKDTree(points[member])
-    samples = origin + np.outer(np.arange(span[0], span[1] + radius, radius), direction)
-    near = trees[region].query_ball_point(samples, 1.5 * radius)
-    idx = np.unique(np.concatenate([np.zeros(0, np.int64), *near]).astype(np.int64))
-    p = points[member[idx]] - origin
+    """Returns ((k,) line parameters, (k, 3) offsets from the line) of the (n, 3) ``near`` points within
+    ``radius`` of the line."""
+    p = near - origin
     t = p @ direction
     perp = p - np.outer(t, direction)
     near_line = np.einsum("ij,ij->i", perp, perp) <= radius * radius
