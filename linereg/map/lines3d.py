@@ -20,6 +20,7 @@ from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
 from ..errors import InvalidInputError
+from ..threads import thread_count
 from . import kinds
 from .collinear import drop_near, merge_collinear
 from .contours import image_contours, image_lines, plane_basis, region_image
@@ -103,8 +104,9 @@ def lines_and_surfaces(
     raw = [to_world(f.lines, reg, f.basis) for f, reg in zip(frames, regions, strict=True)]
     families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config)
     contours, near_m = [np.zeros((0, 6))], [np.zeros(0)]
-    for frame, region in zip(frames, regions, strict=True):
-        found = contour_segments(frame, region, families, loose_points, config)
+    beside = _beside_points(loose_points, regions, frames, config.beside_depth_m)
+    for frame, region, near in zip(frames, regions, beside, strict=True):
+        found = contour_segments(frame, region, families, near, config)
         contours.append(found)
         near_m.append(np.full(len(found), 2.0 * frame.cell))
     contour = drop_near(np.concatenate(contours), creases, np.concatenate(near_m), 10.0)
@@ -179,12 +181,13 @@ def contour_segments(
     frame: Frame,
     region: Region,
     families: tuple[np.ndarray, np.ndarray],
-    loose: cKDTree,
+    near: np.ndarray,
     config: Lines3DConfig,
 ) -> np.ndarray:
     """Returns (K, 6) segments along the boundary of one planar region: candidates turned onto the global
-    direction ``families`` (``dominant_directions``), moved onto the points; ``loose`` (a KD-tree) holds the
-    points of no large region, which bound the edges of the region's plane or continue it."""
+    direction ``families`` (``dominant_directions``), moved onto the points; ``near`` (q, 3): the points of
+    no large region beside the region (``_beside_points``), which bound the edges of its plane or continue
+    it."""
     band = 2.0 * frame.cell
     size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
     lines, fixed = snap_to_families(frame.lines, frame.basis, families, config)
@@ -199,24 +202,40 @@ def contour_segments(
         )
     raw = np.concatenate([frame.lines, box])
     lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
-    near = _beside_points(loose, region, frame, band, config.beside_depth_m)
     lines, kept = refine_edges(frame.uv, lines, band, config, near, fixed)
     # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
     kept[kept] = has_parallel(raw[kept], size, config)
     return to_world(snap_directions(lines[kept], config.snap_angle_deg), region, frame.basis)
 
 
-def _beside_points(loose: cKDTree, region: Region, frame: Frame, band: float, depth_m: float) -> np.ndarray:
-    """Returns (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within depth_m of the
-    region's plane and a band of its points' bounding box in it."""
-    if loose.n == 0 or len(frame.uv) == 0:
-        return np.zeros((0, 3))
-    lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
-    centre = region.centroid + 0.5 * (lo + hi) @ frame.basis
-    reach = float(np.sqrt(np.sum((0.5 * (hi - lo) + band) ** 2) + depth_m**2))
-    rel = loose.data[loose.query_ball_point(centre, reach)] - region.centroid
-    depth = rel @ region.normal
-    near = np.abs(depth) <= depth_m
-    uv = rel[near] @ frame.basis.T
-    inside = ((uv >= lo - band) & (uv <= hi + band)).all(axis=1)
-    return np.c_[uv[inside], depth[near][inside]]
+def _beside_points(
+    loose: cKDTree, regions: list[Region], frames: list[Frame], depth_m: float
+) -> list[np.ndarray]:
+    """Returns per region (q, 3) u, v, signed plane distance of the loose points (a KD-tree) within depth_m
+    of the region's plane and a band (2 cells) of its points' bounding box in it.
+
+    One KD-tree query for every region (each region's ball as a query of its own gave the same points,
+    for a room's thousand regions at a thousand calls' cost).
+    """
+    out = [np.zeros((0, 3)) for _ in regions]
+    todo = [k for k, f in enumerate(frames) if len(f.uv)] if loose.n else []
+    if not todo:
+        return out
+    centres, reaches = np.zeros((len(todo), 3)), np.zeros(len(todo))
+    for i, k in enumerate(todo):
+        region, frame = regions[k], frames[k]
+        lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
+        centres[i] = region.centroid + 0.5 * (lo + hi) @ frame.basis
+        reaches[i] = float(np.sqrt(np.sum((0.5 * (hi - lo) + 2.0 * frame.cell) ** 2) + depth_m**2))
+    found = loose.query_ball_point(centres, reaches, return_sorted=False, workers=thread_count(8))
+    for k, index in zip(todo, found, strict=True):
+        region, frame = regions[k], frames[k]
+        band = 2.0 * frame.cell
+        lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
+        rel = loose.data[index] - region.centroid
+        depth = rel @ region.normal
+        near = np.abs(depth) <= depth_m
+        uv = rel[near] @ frame.basis.T
+        inside = ((uv >= lo - band) & (uv <= hi + band)).all(axis=1)
+        out[k] = np.c_[uv[inside], depth[near][inside]]
+    return out
