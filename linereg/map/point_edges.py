@@ -23,6 +23,8 @@ Measured on the shared RGB-D rooms (``linereg bench lines3d --real``, docs/measu
 
 from __future__ import annotations
 
+from concurrent.futures import ThreadPoolExecutor
+
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -70,24 +72,36 @@ def edge_points(points: np.ndarray, tree: cKDTree, config: PointEdgesConfig) -> 
     k = config.neighbours
     compare = min(config.compare_neighbours, k)
     near = np.zeros((len(points), compare), dtype=np.int64)
-    for lo in range(0, len(points), config.chunk):
-        p = points[lo : lo + config.chunk]
-        dist, nb = tree.query(p, k=k, workers=thread_count(8))
+    threads = thread_count(8)
+    # blocks of at most config.chunk points, one thread each: the gathers, sums and eigen solves of a
+    # block release the GIL, and every point's numbers are the same in any block
+    size = max(1, min(config.chunk, -(-len(points) // threads)))
+    blocks = [slice(lo, lo + size) for lo in range(0, len(points), size)]
+
+    def fit(block: slice) -> None:
+        p = points[block]
+        dist, nb = tree.query(p, k=k)
         q = points[nb]
         centroid = q.mean(axis=1)
         d = q - centroid[:, None]
         n = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))[1][:, :, 0]
         off = centroid - p
         off -= n * np.einsum("ni,ni->n", off, n)[:, None]
-        normal[lo : lo + len(p)] = n
-        shift[lo : lo + len(p)] = np.linalg.norm(off, axis=1) / np.maximum(dist[:, -1], 1e-12)
-        near[lo : lo + len(p)] = nb[:, :compare]
+        normal[block] = n
+        shift[block] = np.linalg.norm(off, axis=1) / np.maximum(dist[:, -1], 1e-12)
+        near[block] = nb[:, :compare]
+
     bends = np.zeros(len(points), dtype=bool)
     cos = np.cos(np.radians(config.crease_deg))
-    for lo in range(0, len(points), config.chunk):
-        nb, n = near[lo : lo + config.chunk], normal[lo : lo + config.chunk]
+
+    def bend(block: slice) -> None:
+        nb, n = near[block], normal[block]
         turned = np.abs(np.einsum("nki,ni->nk", normal[nb], n)) < cos
-        bends[lo : lo + len(n)] = turned.mean(axis=1) >= config.bend_share
+        bends[block] = turned.mean(axis=1) >= config.bend_share
+
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        list(pool.map(fit, blocks))
+        list(pool.map(bend, blocks))
     return bends | (shift > config.boundary_shift)
 
 
