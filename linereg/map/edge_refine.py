@@ -35,79 +35,129 @@ def refine_edges(
     from the plane of points of no region near it, or None; fixed: (k,) bool lines whose direction is
     known (a dominant direction): only their offset is fitted.
     """
-    if len(lines) == 0:
-        return lines, np.zeros(0, dtype=bool)
-    a, b = lines[:, :2], lines[:, 2:]
+    fixed = np.zeros(len(lines), dtype=bool) if fixed is None else fixed
+    beside = np.zeros((0, 3)) if beside is None else beside
+    return refine_regions([uv], [lines], [band], config, [beside], [fixed])[0]
+
+
+def refine_regions(
+    uvs: list[np.ndarray],
+    lines: list[np.ndarray],
+    bands: list[float],
+    config: Lines3DConfig,
+    besides: list[np.ndarray],
+    fixed: list[np.ndarray],
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Returns ``refine_edges`` of each region (its uv points, lines, band, beside points and fixed lines)
+    computed at once: the neighbour searches run per region (a KD-tree of its own plane coordinates), the
+    rest as grouped sums over every region's lines (a room holds a thousand small regions: a call each
+    cost more than the sums). A line's sums add the same numbers in the same order as one region alone."""
+    sizes = np.array([len(x) for x in lines], dtype=np.int64)
+    first = np.r_[0, np.cumsum(sizes)]
+    k = int(first[-1])
+    if k == 0:
+        return [(x, np.zeros(0, dtype=bool)) for x in lines]
+    every = np.concatenate(lines)
+    band = np.repeat(np.asarray(bands, dtype=np.float64), sizes)
+    fix = np.concatenate(fixed).astype(bool)
+    a, b = every[:, :2], every[:, 2:]
     length = np.linalg.norm(b - a, axis=1)
     d = (b - a) / length[:, None]
     m = np.stack([-d[:, 1], d[:, 0]], axis=1)
-    line, point = _near_pairs(cKDTree(uv), a, d, length, band)
+    has = np.flatnonzero(sizes > 0)
+    base = np.r_[0, np.cumsum([len(u) for u in uvs])]
+    uv = np.concatenate(uvs)
+    trees = [(cKDTree(uvs[r]), first[r], first[r + 1], base[r]) for r in has]
+    line, point = _near_pairs(trees, a, d, length, band, uv)
     rel = uv[point] - a[line]
     t, s = np.einsum("pk,pk->p", rel, d[line]), np.einsum("pk,pk->p", rel, m[line])
-    keep = (np.abs(s) <= band) & (t >= 0.5 * band) & (t <= length[line] - 0.5 * band)
+    bl = band[line]
+    keep = (np.abs(s) <= bl) & (t >= 0.5 * bl) & (t <= length[line] - 0.5 * bl)
     line, t, s = line[keep], t[keep], s[keep]
-    k = len(lines)
     count = np.bincount(line, minlength=k)
     t_lo, t_hi = _group_min(t, line, k), -_group_min(-t, line, k)
     # no points along most of it: the raster's closing bridged a gap, no boundary of the surface
     ok = (count >= config.edge_min_line_points) & (t_hi - t_lo >= 0.5 * (length - band))
     outward = -np.sign(np.bincount(line, s, k))  # the points lie on the inner side
-    fixed = np.zeros(k, dtype=bool) if fixed is None else fixed
-    geometry = (a, d, m * outward[:, None], length)
-    pairs = _beside_pairs(beside, geometry, band)
+    geometry = (a, d, m * outward[:, None], length, band)
+    pairs = _beside_pairs([(besides[r], first[r], first[r + 1]) for r in has], geometry)
     on_plane = np.abs(pairs[:, 3]) < config.edge_on_plane_m
     off = pairs[~on_plane]
     o = outward[line] * s
     # the free fit tells whether a straight edge lies behind the line (a ragged outline's chords snap
     # onto a family direction too); lines too short for it (one bin) may still take a known direction
     slope, intercept, on_line = _edge_lines(line, t, o, t_lo, band, np.zeros(k, dtype=bool), off, config)
-    ends = np.clip(intercept[:, None] + slope[:, None] * np.stack([np.zeros(k), length], 1), -band, band)
+    lo_hi = (-band[:, None], band[:, None])
+    ends = np.clip(intercept[:, None] + slope[:, None] * np.stack([np.zeros(k), length], 1), *lo_hi)
     straight = (on_line >= 0.5 * (length - band) / band) & (
         np.abs(ends[:, 1] - ends[:, 0]) <= length * np.tan(np.radians(config.edge_max_tilt_deg))
     )
-    _, intercept0, on_line0 = _edge_lines(line, t, o, t_lo, band, fixed, off, config)
-    short = fixed & ~np.isfinite(slope) & (on_line0 >= 1)
+    _, intercept0, on_line0 = _edge_lines(line, t, o, t_lo, band, fix, off, config)
+    short = fix & ~np.isfinite(slope) & (on_line0 >= 1)
     ok &= straight | short
-    ends[fixed] = np.clip(intercept0[fixed, None], -band, band)
+    ends[fix] = np.clip(intercept0[fix, None], -band[fix, None], band[fix, None])
     # points of no region in the plane beyond the edge: the surface goes on, only its labels stop (region
     # growing leaves out the points round a crease, for one)
     on = pairs[on_plane]
-    beyond = on[:, 2] > np.nan_to_num(ends[on[:, 0].astype(np.int64)].max(axis=1), nan=band)
-    ok &= np.bincount(on[beyond, 0].astype(np.int64), minlength=k) < config.edge_max_going_on * count
+    owner = on[:, 0].astype(np.int64)
+    reach = ends[owner].max(axis=1)
+    beyond = on[:, 2] > np.where(np.isnan(reach), band[owner], np.nan_to_num(reach))
+    ok &= np.bincount(owner[beyond], minlength=k) < config.edge_max_going_on * count
     shift = (outward[:, None, None] * ends[..., None]) * m[:, None, :]
-    return np.concatenate([a + shift[:, 0], b + shift[:, 1]], axis=1), ok
+    moved = np.concatenate([a + shift[:, 0], b + shift[:, 1]], axis=1)
+    return [(moved[first[r] : first[r + 1]], ok[first[r] : first[r + 1]]) for r in range(len(lines))]
 
 
-def _beside_pairs(beside: np.ndarray | None, geometry: tuple[np.ndarray, ...], band: float) -> np.ndarray:
-    """Returns (q, 4) line, t, outward offset, depth of the (b, 3) ``beside`` points (u, v, signed plane
-    distance) within a band of each line; geometry: (k, 2) starts, directions, outward normals, (k,)
-    lengths."""
-    a, d, out, length = geometry
-    if beside is None or len(beside) == 0:
+def _beside_pairs(besides: list[tuple[np.ndarray, int, int]], geometry: tuple[np.ndarray, ...]) -> np.ndarray:
+    """Returns (q, 4) line, t, outward offset, depth of each region's (b, 3) beside points (u, v, signed
+    plane distance) within a band of each of its lines; ``besides``: per region its points and its lines
+    (first, end); geometry: (k, 2) starts, directions, outward normals, (k,) lengths, bands of all lines."""
+    a, d, out, length, band = geometry
+    besides = [x for x in besides if len(x[0])]
+    if not besides:
         return np.zeros((0, 4))
-    line, point = _near_pairs(cKDTree(beside[:, :2]), a, d, length, band)
+    base = np.cumsum([0] + [len(near) for near, _, _ in besides])
+    trees = [
+        (cKDTree(near[:, :2]), lo, hi, int(at)) for (near, lo, hi), at in zip(besides, base, strict=False)
+    ]
+    beside = np.concatenate([near for near, _, _ in besides])
+    line, point = _near_pairs(trees, a, d, length, band, beside[:, :2])
     rel = beside[point, :2] - a[line]
     t, o = np.einsum("pk,pk->p", rel, d[line]), np.einsum("pk,pk->p", rel, out[line])
-    keep = (t >= 0) & (t <= length[line]) & (np.abs(o) <= band) & np.isfinite(o)
+    keep = (t >= 0) & (t <= length[line]) & (np.abs(o) <= band[line]) & np.isfinite(o)
     return np.stack([line, t, o, beside[point, 2]], axis=1)[keep]
 
 
 def _near_pairs(
-    tree: cKDTree, a: np.ndarray, d: np.ndarray, length: np.ndarray, band: float
+    trees: list[tuple[cKDTree, int, int, int]],
+    a: np.ndarray,
+    d: np.ndarray,
+    length: np.ndarray,
+    band: np.ndarray,
+    data: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((q,) line, (q,) point) distinct pairs of tree points near each line: all within band of it
-    along its length, and a few more (within hypot(band, band / 2) of samples taken every band)."""
+    """Returns ((q,) line, (q,) point) distinct pairs of points near each line: all within its band of it
+    along its length, and a few more (within hypot(band, band / 2) of samples taken every band).
+    ``trees``: per region a KD-tree of its points (rows ``base`` on of the (N, 2) ``data``), its lines
+    [lo, hi) and ``base``."""
     count = np.ceil((length + band) / band).astype(np.int64)
     line = np.repeat(np.arange(len(a)), count)
     step = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)
-    radius = float(np.hypot(band, 0.5 * band))
-    found = tree.query_ball_point(a[line] + (step * band)[:, None] * d[line], radius, return_sorted=False)
-    sizes = np.fromiter(map(len, found), np.int64, len(found))
-    point = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
-    line, step = np.repeat(line, sizes), np.repeat(step, sizes)
+    samples = a[line] + (step * band[line])[:, None] * d[line]
+    start = np.r_[0, np.cumsum(count)]
+    points, lines, steps = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
+    for tree, lo, hi, base in trees:
+        radius = float(np.hypot(band[lo], 0.5 * band[lo]))
+        part = slice(start[lo], start[hi])
+        found = tree.query_ball_point(samples[part], radius, return_sorted=False)
+        size = np.fromiter(map(len, found), np.int64, len(found))
+        points.append(np.fromiter(itertools.chain.from_iterable(found), np.int64, int(size.sum())) + base)
+        lines.append(np.repeat(line[part], size))
+        steps.append(np.repeat(step[part], size))
+    point, line, step = np.concatenate(points), np.concatenate(lines), np.concatenate(steps)
     # a point is found by neighbouring samples too: it belongs to the one whose stretch holds it
-    t = np.einsum("pk,pk->p", tree.data[point] - a[line], d[line])
-    mine = np.clip(np.floor(t / band + 0.5), 0, count[line] - 1) == step
+    t = np.einsum("pk,pk->p", data[point] - a[line], d[line])
+    mine = np.clip(np.floor(t / band[line] + 0.5), 0, count[line] - 1) == step
     return line[mine], point[mine]
 
 
@@ -123,7 +173,7 @@ def _edge_lines(
     t: np.ndarray,
     o: np.ndarray,
     t_lo: np.ndarray,
-    band: float,
+    band: np.ndarray,
     fixed: np.ndarray,
     off: np.ndarray,
     config: Lines3DConfig,
@@ -131,9 +181,10 @@ def _edge_lines(
     """Returns (k,) slope, intercept (NaN: no fit) and bins on it of the edge e(t) behind each line's
     points at (t, outward offset o); bins on it are the band-long stretches whose edge estimate lies
     within band / 2 of the line. Bins whose estimate is off by more than 2.5 median residuals (a bin
-    reaching into a neighbouring structure) are left out of a second fit. ``fixed`` lines get slope 0."""
+    reaching into a neighbouring structure) are left out of a second fit. ``fixed`` lines get slope 0;
+    ``band``: (k,) of each line."""
     k = len(fixed)
-    bins = np.floor((t - t_lo[line]) / band).astype(np.int64)
+    bins = np.floor((t - t_lo[line]) / band[line]).astype(np.int64)
     num_bins = bins.max(initial=0) + 1
     key, inverse = np.unique(line * num_bins + bins, return_inverse=True)
     inverse = inverse.ravel()
@@ -141,7 +192,7 @@ def _edge_lines(
     count = np.bincount(inverse)
     top = -_group_min(-o, inverse, len(key))
     centre = np.bincount(inverse, t) / count
-    edge = top + (top + band) / count
+    edge = top + (top + band[owner]) / count
     # a scanner samples in rows and columns: the last one lies on average half their spacing inside the
     # edge, the spacing being the gap down to the next line of points (typical over the line's bins)
     lower = o < top[inverse] - config.edge_row_step_m
@@ -162,26 +213,27 @@ def _edge_lines(
     refit = (n_in >= 2) & (n_in < n_all)
     s2, i2 = _weighted_fit(owner[inlier], centre[inlier], edge[inlier], weight[inlier], fixed)
     slope, intercept = np.where(refit, s2, slope), np.where(refit, i2, intercept)
-    on = np.abs(edge - (slope[owner] * centre + intercept[owner])) <= 0.5 * band
+    on = np.abs(edge - (slope[owner] * centre + intercept[owner])) <= 0.5 * band[owner]
     slope[(n_all < 2) & ~fixed | (n_all < 1)] = np.nan
     return slope, intercept, np.bincount(owner[on], minlength=k)
 
 
 def _first_beyond(
-    off: np.ndarray, key: np.ndarray, top: np.ndarray, t_lo: np.ndarray, num_bins: int, band: float
+    off: np.ndarray, key: np.ndarray, top: np.ndarray, t_lo: np.ndarray, num_bins: int, band: np.ndarray
 ) -> np.ndarray:
     """Returns (B,) per bin (sorted ``key`` = line * num_bins + bin) the smallest outward offset of the
-    (q, 4) ``off`` points beyond the bin's outermost region point ``top`` by at most band (inf: none)."""
+    (q, 4) ``off`` points beyond the bin's outermost region point ``top`` by at most its line's (k,) band
+    (inf: none)."""
     first = np.full(len(key), np.inf)
     if len(off) == 0 or len(key) == 0:
         return first
     line = off[:, 0].astype(np.int64)
-    bins = np.floor((off[:, 1] - t_lo[line]) / band)
+    bins = np.floor((off[:, 1] - t_lo[line]) / band[line])
     valid = np.isfinite(bins) & (bins >= 0) & (bins < num_bins)
     wanted = line[valid] * num_bins + bins[valid].astype(np.int64)
     idx = np.minimum(np.searchsorted(key, wanted), len(key) - 1)
     o = off[valid, 2]
-    hit = (key[idx] == wanted) & (o > top[idx]) & (o <= top[idx] + band)
+    hit = (key[idx] == wanted) & (o > top[idx]) & (o <= top[idx] + band[line[valid]])
     np.minimum.at(first, idx[hit], o[hit])
     return first
 

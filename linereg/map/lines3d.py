@@ -25,7 +25,7 @@ from . import kinds
 from .collinear import drop_near, merge_collinear
 from .contours import image_contours, image_lines, plane_basis, region_image
 from .creases import crease_segments
-from .edge_refine import refine_edges
+from .edge_refine import refine_regions
 from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
 from .planes import Planes, segment_planes, voxel_downsample
 from .surfaces import Surfaces, concat_surfaces, empty_surfaces, raster_mesh
@@ -103,12 +103,10 @@ def lines_and_surfaces(
     # directions from every region's candidates: a window pane's short sides take the facade's
     raw = [to_world(f.lines, reg, f.basis) for f, reg in zip(frames, regions, strict=True)]
     families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config)
-    contours, near_m = [np.zeros((0, 6))], [np.zeros(0)]
     beside = _beside_points(loose_points, regions, frames, config.beside_depth_m)
-    for frame, region, near in zip(frames, regions, beside, strict=True):
-        found = contour_segments(frame, region, families, near, config)
-        contours.append(found)
-        near_m.append(np.full(len(found), 2.0 * frame.cell))
+    contours = contour_segments(frames, regions, families, beside, config)
+    near_m = [np.full(len(found), 2.0 * frame.cell) for frame, found in zip(frames, contours, strict=True)]
+    contours, near_m = [np.zeros((0, 6)), *contours], [np.zeros(0), *near_m]
     contour = drop_near(np.concatenate(contours), creases, np.concatenate(near_m), 10.0)
     segments = np.concatenate([creases, contour])
     kind = np.r_[np.full(len(creases), kinds.CREASE), np.full(len(contour), kinds.BOUNDARY)].astype(np.int8)
@@ -178,34 +176,40 @@ def to_world(lines: np.ndarray, region: Region, basis: np.ndarray) -> np.ndarray
 
 
 def contour_segments(
-    frame: Frame,
-    region: Region,
+    frames: list[Frame],
+    regions: list[Region],
     families: tuple[np.ndarray, np.ndarray],
-    near: np.ndarray,
+    beside: list[np.ndarray],
     config: Lines3DConfig,
-) -> np.ndarray:
-    """Returns (K, 6) segments along the boundary of one planar region: candidates turned onto the global
-    direction ``families`` (``dominant_directions``), moved onto the points; ``near`` (q, 3): the points of
-    no large region beside the region (``_beside_points``), which bound the edges of its plane or continue
-    it."""
-    band = 2.0 * frame.cell
-    size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
-    lines, fixed = snap_to_families(frame.lines, frame.basis, families, config)
-    # the rectangles round the region's points and round its rectangular contours
-    box = np.zeros((0, 4))
-    if config.rectangles:
-        box = np.concatenate(
-            [
-                box_lines([frame.uv], frame.basis, families, config, min_fill=0.0),
-                box_lines(frame.outlines, frame.basis, families, config),
-            ]
-        )
-    raw = np.concatenate([frame.lines, box])
-    lines, fixed = np.concatenate([lines, box]), np.r_[fixed, np.ones(len(box), dtype=bool)]
-    lines, kept = refine_edges(frame.uv, lines, band, config, near, fixed)
-    # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
-    kept[kept] = has_parallel(raw[kept], size, config)
-    return to_world(snap_directions(lines[kept], config.snap_angle_deg), region, frame.basis)
+) -> list[np.ndarray]:
+    """Returns per planar region (K, 6) segments along its boundary: candidates turned onto the global
+    direction ``families`` (``dominant_directions``), moved onto the points; ``beside`` (q, 3) per region:
+    the points of no large region beside it (``_beside_points``), which bound the edges of its plane or
+    continue it. The regions' lines are moved onto their points together (``refine_regions``)."""
+    raws, lines, fixed = [], [], []
+    for frame in frames:
+        snapped, known = snap_to_families(frame.lines, frame.basis, families, config)
+        # the rectangles round the region's points and round its rectangular contours
+        box = np.zeros((0, 4))
+        if config.rectangles:
+            box = np.concatenate(
+                [
+                    box_lines([frame.uv], frame.basis, families, config, min_fill=0.0),
+                    box_lines(frame.outlines, frame.basis, families, config),
+                ]
+            )
+        raws.append(np.concatenate([frame.lines, box]))
+        lines.append(np.concatenate([snapped, box]))
+        fixed.append(np.r_[known, np.ones(len(box), dtype=bool)])
+    bands = [2.0 * frame.cell for frame in frames]
+    refined = refine_regions([f.uv for f in frames], lines, bands, config, beside, fixed)
+    out = []
+    for frame, region, raw, (moved, kept) in zip(frames, regions, raws, refined, strict=True):
+        size = float(np.ptp(frame.uv, axis=0).max()) if len(frame.uv) else 0.0
+        # judged on the raster's own directions: snapping makes the chords of a ragged outline parallel too
+        kept[kept] = has_parallel(raw[kept], size, config)
+        out.append(to_world(snap_directions(moved[kept], config.snap_angle_deg), region, frame.basis))
+    return out
 
 
 def _beside_points(
