@@ -31,27 +31,29 @@ def crease_segments(
     directions = np.cross(planes.normals[pairs[:, 0]], planes.normals[pairs[:, 1]])
     sines = np.linalg.norm(directions, axis=1)
     keep = sines >= np.sin(np.radians(config.crease_min_angle_deg))
-    boxes = {
-        r: (points[members[r]].min(axis=0), points[members[r]].max(axis=0)) for r in np.unique(pairs[keep])
-    }
+    pairs, directions = pairs[keep], directions[keep] / sines[keep, None]
+    box_lo, box_hi = np.zeros((len(planes.counts), 3)), np.zeros((len(planes.counts), 3))
+    for r in np.unique(pairs):
+        box_lo[r], box_hi[r] = points[members[r]].min(axis=0), points[members[r]].max(axis=0)
     share = config.crease_one_sided
-    lines = []  # (a, b, origin, direction, span, cell) of each pair's line inside both boxes
-    for (a, b), direction in zip(pairs[keep], directions[keep] / sines[keep, None], strict=True):
-        na, nb = planes.normals[a], planes.normals[b]
-        cell = max(cells[a], cells[b])
-        # the point of the line nearest both centroids' planes: n_a.x = d_a, n_b.x = d_b, direction.x = mean
-        mid = 0.5 * (planes.centroids[a] + planes.centroids[b]) @ direction
-        rhs = [na @ planes.centroids[a], nb @ planes.centroids[b], mid]
-        origin = np.linalg.solve(np.stack([na, nb, direction]), rhs)
-        span = _overlap(boxes[a], boxes[b], origin, direction, 3 * cell)
-        if span is not None:
-            lines.append((a, b, origin, direction, span, cell))
+    a, b = pairs[:, 0], pairs[:, 1]
+    cell = np.maximum(cells[a], cells[b])
+    # the point of the line nearest both centroids' planes: n_a.x = d_a, n_b.x = d_b, direction.x = mean
+    na, nb, ca, cb = planes.normals[a], planes.normals[b], planes.centroids[a], planes.centroids[b]
+    rhs = np.stack([np.vecdot(na, ca), np.vecdot(nb, cb), np.vecdot(0.5 * (ca + cb), directions)], axis=1)
+    origin = np.linalg.solve(np.stack([na, nb, directions], axis=1), rhs[:, :, None])[:, :, 0]
+    lo = np.maximum(box_lo[a], box_lo[b]) - 3 * cell[:, None]
+    hi = np.minimum(box_hi[a], box_hi[b]) + 3 * cell[:, None]
+    enter, leave, inside = _overlap(lo, hi, origin, directions)
+    lines = [
+        (a[k], b[k], origin[k], directions[k], (enter[k], leave[k]), cell[k]) for k in np.flatnonzero(inside)
+    ]
     near = _near_lines(points, members, lines)
-    for k, (_, _, origin, direction, _, cell) in enumerate(lines):
+    for k, (_, _, at, direction, _, size) in enumerate(lines):
         (ta, perp_a), (tb, perp_b) = near[k, 0], near[k, 1]
-        for t0, t1 in _common_runs(ta, tb, cell, config):
+        for t0, t1 in _common_runs(ta, tb, size, config):
             if _one_sided(ta, perp_a, t0, t1, share) and _one_sided(tb, perp_b, t0, t1, share):
-                out.append(np.r_[origin + t0 * direction, origin + t1 * direction])
+                out.append(np.r_[at + t0 * direction, at + t1 * direction])
     return np.array(out).reshape(-1, 6)
 
 
@@ -66,21 +68,18 @@ def _one_sided(t: np.ndarray, perp: np.ndarray, t0: float, t1: float, share: flo
     return bool(max((side > 0).mean(), (side < 0).mean()) >= share)
 
 
-def _overlap(box_a, box_b, origin: np.ndarray, direction: np.ndarray, margin: float):
-    """Returns the (t0, t1) stretch of the line inside both regions' bounding boxes (grown by margin)."""
-    lo = np.maximum(box_a[0], box_b[0]) - margin
-    hi = np.minimum(box_a[1], box_b[1]) + margin
-    if (lo > hi).any():
-        return None
-    t0, t1 = -np.inf, np.inf
-    for k in range(3):  # slab clipping of the line against the box
-        if abs(direction[k]) < 1e-12:
-            if not lo[k] <= origin[k] <= hi[k]:
-                return None
-            continue
-        ta, tb = sorted(((lo[k] - origin[k]) / direction[k], (hi[k] - origin[k]) / direction[k]))
-        t0, t1 = max(t0, ta), min(t1, tb)
-    return (t0, t1) if t1 > t0 else None
+def _overlap(
+    lo: np.ndarray, hi: np.ndarray, origin: np.ndarray, direction: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (N,) t0, t1 and whether t1 > t0: the stretch of each (N, 3) line origin + t direction inside
+    the (N, 3) box lo-hi (slab clipping; a line parallel to a slab outside it misses the box)."""
+    flat = np.abs(direction) < 1e-12
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ta, tb = (lo - origin) / direction, (hi - origin) / direction
+    enter = np.where(flat, -np.inf, np.minimum(ta, tb)).max(axis=1)
+    leave = np.where(flat, np.inf, np.maximum(ta, tb)).min(axis=1)
+    missed = (lo > hi).any(axis=1) | (flat & ~((lo <= origin) & (origin <= hi))).any(axis=1)
+    return enter, leave, ~missed & (leave > enter)
 
 
 def _near_lines(
