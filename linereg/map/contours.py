@@ -60,16 +60,32 @@ def image_lines(
 ) -> np.ndarray:
     """Returns (k, 4) float64 pixel segments x1, y1, x2, y2 fitted to the straight runs of the contours
     of the (H, W) uint8 image; runs shorter than min_cells are dropped."""
-    pixels, run_start, run_len = _runs(contours, min_cells, config.approx_cells)
-    if len(run_len) == 0:
-        return np.zeros((0, 4))
+    return regions_lines([image], [contours], [min_cells], config)[0]
+
+
+def regions_lines(
+    images: list[np.ndarray], contours: list[list[np.ndarray]], min_cells: list[float], config: Lines3DConfig
+) -> list[np.ndarray]:
+    """Returns ``image_lines`` of each region's image, contours and min_cells, fitted together: the polygon
+    runs are found per contour, the fits and step tests as grouped sums over every region's runs (a room's
+    thousand small regions cost more in calls than in sums; each run's sums are the same numbers)."""
+    found = [_runs(c, m, config.approx_cells) for c, m in zip(contours, min_cells, strict=True)]
+    counts = np.array([len(f[2]) for f in found], dtype=np.int64)
+    if counts.sum() == 0:
+        return [np.zeros((0, 4)) for _ in images]
+    base = np.cumsum([0] + [len(f[0]) for f in found])[:-1]
+    pixels = np.concatenate([f[0] for f in found])
+    run_start = np.concatenate([f[1] + b for f, b in zip(found, base, strict=True)])
+    run_len = np.concatenate([f[2] for f in found])
+    region = np.repeat(np.arange(len(images)), counts)
+    least = np.asarray(min_cells, dtype=np.float64)[region]
     run = np.repeat(np.arange(len(run_len)), run_len)
     pos = np.arange(len(run)) - np.repeat(np.cumsum(run_len) - run_len, run_len)
     xy = pixels[run_start[run] + pos]  # (sum of run lengths, 2): the runs' pixels one after the other
     first, last = xy[np.cumsum(run_len) - run_len], xy[np.cumsum(run_len) - 1]
     chord = np.linalg.norm(last - first, axis=1)
     # a run much longer than its chord turns a corner: the polygon cut it, it is no edge
-    good = (chord >= min_cells) & (run_len <= 1.2 * chord + 2)
+    good = (chord >= least) & (run_len <= 1.2 * chord + 2)
     trim = np.maximum(2, run_len // 10)
     trimmed = run_len > 2 * trim + 4  # corners round off: fit on the middle
     core = ~trimmed[run] | ((pos >= trim[run]) & (pos < run_len[run] - trim[run]))
@@ -77,8 +93,11 @@ def image_lines(
     ends = np.stack([first, last], axis=1)  # (R, 2, 2)
     along = np.einsum("rek,rk->re", ends - centre[:, None], direction)
     ends = centre[:, None] + along[..., None] * direction[:, None]
-    lines = ends.reshape(-1, 4)[good]
-    return lines[_is_step(image, lines)]
+    lines, region = ends.reshape(-1, 4)[good], region[good]
+    step = _is_step(images, region, lines)
+    lines, region = lines[step], region[step]
+    bounds = np.searchsorted(region, np.arange(len(images) + 1))
+    return [lines[bounds[r] : bounds[r + 1]] for r in range(len(images))]
 
 
 def _runs(contours, min_cells: float, approx_cells: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -141,9 +160,10 @@ def _principal_axes(xy: np.ndarray, group: np.ndarray, use: np.ndarray, num: int
     return centre, np.stack([np.cos(angle), np.sin(angle)], axis=1)
 
 
-def _is_step(image: np.ndarray, lines: np.ndarray) -> np.ndarray:
-    """Returns (k,) bool: is the raster filled on one side of each pixel segment and empty on the other,
-    all along it (a polygon side cutting a rounded corner or crossing a ragged patch is not an edge)?"""
+def _is_step(images: list[np.ndarray], region: np.ndarray, lines: np.ndarray) -> np.ndarray:
+    """Returns (k,) bool: is the raster of its ``region`` (k,) filled on one side of each pixel segment and
+    empty on the other, all along it (a polygon side cutting a rounded corner or crossing a ragged patch
+    is not an edge)?"""
     a, b = lines[:, :2], lines[:, 2:]
     length = np.linalg.norm(b - a, axis=1)
     d = (b - a) / np.maximum(length, 1e-12)[:, None]
@@ -152,11 +172,17 @@ def _is_step(image: np.ndarray, lines: np.ndarray) -> np.ndarray:
     line = np.repeat(np.arange(len(lines)), count)
     step = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count) + 1.0
     along = a[line] + step[:, None] * d[line]
+    # every region's raster in one flat array
+    shape = np.array([im.shape for im in images], dtype=np.int64).reshape(-1, 2)
+    start = np.r_[0, np.cumsum(shape[:, 0] * shape[:, 1])][:-1]
+    flat = np.concatenate([im.ravel() for im in images]) if images else np.zeros(0, np.uint8)
+    owner = region[line]
+    top = np.stack([shape[owner, 1] - 1, shape[owner, 0] - 1], axis=1)
     filled = []
     for side in (-1.5, 1.5):
         xy = np.rint(along + side * m[line]).astype(np.int64)
-        xy = np.clip(xy, 0, [image.shape[1] - 1, image.shape[0] - 1])
-        hits = np.bincount(line, image[xy[:, 1], xy[:, 0]] > 0, len(lines))
+        xy = np.clip(xy, 0, top)
+        hits = np.bincount(line, flat[start[owner] + xy[:, 1] * shape[owner, 1] + xy[:, 0]] > 0, len(lines))
         filled.append(hits / np.maximum(count, 1))
     high, low = np.maximum(*filled), np.minimum(*filled)
     return (count > 0) & (high >= 0.75) & (low <= 0.25)

@@ -23,7 +23,7 @@ from ..errors import InvalidInputError
 from ..threads import thread_count
 from . import kinds
 from .collinear import drop_near, merge_collinear
-from .contours import image_contours, image_lines, plane_basis, region_image
+from .contours import image_contours, plane_basis, region_image, regions_lines
 from .creases import crease_segments
 from .edge_refine import refine_regions
 from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
@@ -99,7 +99,7 @@ def lines_and_surfaces(
     loose_points = cKDTree(points[loose])
     kept = np.flatnonzero(large)
     regions = [Region(planes.normals[r], planes.centroids[r], cells[r]) for r in kept]
-    frames = [candidates(points[members[r]], reg, config) for r, reg in zip(kept, regions, strict=True)]
+    frames = candidates([points[members[r]] for r in kept], regions, config)
     # directions from every region's candidates: a window pane's short sides take the facade's
     raw = [to_world(f.lines, reg, f.basis) for f, reg in zip(frames, regions, strict=True)]
     families = dominant_directions(np.concatenate([np.zeros((0, 6)), *raw]), config)
@@ -154,20 +154,26 @@ class Frame(NamedTuple):
     lo: np.ndarray
 
 
-def candidates(points: np.ndarray, region: Region, config: Lines3DConfig) -> Frame:
-    """Returns the region of (n, 3) local points in its plane with the straight runs of its raster's
-    contours as candidate boundary lines."""
-    basis = plane_basis(region.normal)
-    uv = (points - region.centroid) @ basis.T
-    image, lo, cell = region_image(uv, region.cell, config)
-    contours, _ = image_contours(image)
-    lines2d = image_lines(image, contours, config.min_length_m / cell, config)
-    uv_lines = (lo + (lines2d.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
-    # the contours (outer and hole) that could hold two parallel edges of the shortest length
-    outlines = [
-        lo + (c.reshape(-1, 2) + 0.5) * cell for c in contours if len(c) * cell >= 4 * config.min_length_m
-    ]
-    return Frame(basis, uv, uv_lines, cell, outlines, image, lo)
+def candidates(points: list[np.ndarray], regions: list[Region], config: Lines3DConfig) -> list[Frame]:
+    """Returns each region of (n, 3) local points in its plane with the straight runs of its raster's
+    contours as candidate boundary lines (the runs of all regions fitted together: ``regions_lines``)."""
+    bases = [plane_basis(region.normal) for region in regions]
+    uvs = [(p - region.centroid) @ basis.T for p, region, basis in zip(points, regions, bases, strict=True)]
+    rasters = [region_image(uv, region.cell, config) for uv, region in zip(uvs, regions, strict=True)]
+    contours = [image_contours(image)[0] for image, _, _ in rasters]
+    least = [config.min_length_m / cell for _, _, cell in rasters]
+    found = regions_lines([image for image, _, _ in rasters], contours, least, config)
+    frames = []
+    for basis, uv, (image, lo, cell), lines2d, outline in zip(
+        bases, uvs, rasters, found, contours, strict=True
+    ):
+        uv_lines = (lo + (lines2d.reshape(-1, 2) + 0.5) * cell).reshape(-1, 4)  # pixel centres -> plane
+        # the contours (outer and hole) that could hold two parallel edges of the shortest length
+        outlines = [
+            lo + (c.reshape(-1, 2) + 0.5) * cell for c in outline if len(c) * cell >= 4 * config.min_length_m
+        ]
+        frames.append(Frame(basis, uv, uv_lines, cell, outlines, image, lo))
+    return frames
 
 
 def to_world(lines: np.ndarray, region: Region, basis: np.ndarray) -> np.ndarray:
