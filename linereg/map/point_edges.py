@@ -23,6 +23,7 @@ Measured on the shared RGB-D rooms (``linereg bench lines3d --real``, docs/measu
 
 from __future__ import annotations
 
+import itertools
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -126,8 +127,10 @@ def _runs_along(
     t = edge @ d
     lo = uv.min(axis=0) - 2 * spacing
     ij = np.floor((uv - lo) / spacing).astype(np.int64)
-    hist = np.zeros(tuple(ij.max(axis=0) + 3))
-    np.add.at(hist, (ij[:, 0], ij[:, 1]), 1.0)
+    shape = tuple(ij.max(axis=0) + 3)
+    # counts of whole points: a bincount adds the same ones as np.add.at, many times faster
+    hist = np.bincount(ij[:, 0] * shape[1] + ij[:, 1], minlength=shape[0] * shape[1]).reshape(shape)
+    hist = hist.astype(np.float64)
     sigma = config.smooth_cells
     smooth = ndimage.gaussian_filter(hist, sigma)
     # a pile of a segment min_length long: fill x min_length / spacing points, 1 / (2 pi sigma^2) of them
@@ -185,7 +188,7 @@ def _flat(
     )
     sizes = np.fromiter((len(n) for n in near), np.int64, len(near))
     slice_of = np.repeat(np.arange(len(seg)), sizes)
-    idx = np.concatenate([np.asarray(n, dtype=np.int64) for n in near]) if sizes.sum() else np.zeros(0, int)
+    idx = np.fromiter(itertools.chain.from_iterable(near), np.int64, int(sizes.sum()))
     owner = seg[slice_of]
     rel = points[idx] - p0[owner]
     along = np.einsum("ni,ni->n", rel, d[owner])
