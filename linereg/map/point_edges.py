@@ -36,6 +36,7 @@ from ..threads import thread_count
 __all__ = ["edge_points", "point_edges"]
 
 MIN_SECTION_POINTS = 10  # a cross-section of fewer points has no shape to judge
+BLOCK_POINTS = 4096  # the fewest points of a block of neighbour fits (one thread's share of the work)
 
 
 def point_edges(
@@ -74,9 +75,10 @@ def edge_points(points: np.ndarray, tree: cKDTree, config: PointEdgesConfig) -> 
     compare = min(config.compare_neighbours, k)
     near = np.zeros((len(points), compare), dtype=np.int64)
     threads = thread_count(8)
-    # blocks of at most config.chunk points, one thread each: the gathers, sums and eigen solves of a
-    # block release the GIL, and every point's numbers are the same in any block
-    size = max(1, min(config.chunk, -(-len(points) // threads)))
+    # blocks of at most config.chunk points on the threads: the gathers, sums and eigen solves of a block
+    # release the GIL, and every point's numbers are the same in any block. Four blocks a thread: a
+    # thread held up (another process on the core) leaves its work to the others
+    size = max(1, min(config.chunk, max(BLOCK_POINTS, -(-len(points) // (4 * threads)))))
     blocks = [slice(lo, lo + size) for lo in range(0, len(points), size)]
 
     def fit(block: slice) -> None:
