@@ -14,15 +14,17 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import NamedTuple
+from concurrent.futures import Future, ThreadPoolExecutor
+from typing import Any, NamedTuple
 
 import numpy as np
 
 from ..config import Lines3DConfig, MapBuildConfig
+from ..threads import thread_count
 from . import kinds
 from .collinear import along
 from .lines3d import check_points, lines_and_surfaces
-from .planes import segment_planes, voxel_downsample
+from .planes import Planes, segment_planes, voxel_downsample
 from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
 from .surfaces import Surfaces, empty_surfaces, shift_surfaces
 
@@ -78,36 +80,30 @@ def extract_map(
         local = voxel_downsample(local, lines_config.downsample_m)
     sensor = None if profile.sensor_origin is None else np.asarray(profile.sensor_origin) - offset
     planes = segment_planes(local, lines_config, progress)
-    if progress:
-        progress("lines")
-    mesh_cell = config.mesh_cell_m if config.surfaces else np.inf
-    segments, kind, surfaces = lines_and_surfaces(local, planes, lines_config, mesh_cell, sensor)
-    if config.sensor_edges and sensor is not None and profile.rings:
-        from .sensor_edges import sensor_edges
-
-        ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
-        found, found_kind = sensor_edges(points - offset, ring, sensor, config.sensor)
-        # an edge along a plane's boundary or crease is that line (exactly fitted to its plane)
-        segments, kind = _add_edges(segments, kind, found, found_kind, config.sensor.along_plane_m)
-    if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
-        from .plane_directions import frame_directions
-        from .point_edges import point_edges
-
+    # point edges need only the planes: their neighbour searches and sums (which release the GIL) run in
+    # a thread of their own while this one traces the regions' outlines (Python-bound)
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        edges = None
+        if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
+            run = pool.submit if thread_count(2) > 1 else _now
+            edges = run(_point_edges, local, planes, profile, lines_config, config)
         if progress:
-            progress("point edges")
-        # only along the scene's frame (a room's floor and walls): edge points of noise pile up along any
-        # direction, and a tilted plane's creases or a ragged segment's direction would collect them
-        frame, _ = frame_directions(planes.normals, planes.counts * planes.spacing_m**2, config.directions)
-        found = point_edges(
-            local,
-            frame,
-            max(profile.spacing_m, lines_config.downsample_m),
-            profile.noise_m,
-            lines_config.min_length_m,
-            config.point,
-        )
-        found_kind = np.full(len(found), kinds.POINT_EDGE, np.int8)
-        segments, kind = _add_edges(segments, kind, found, found_kind, config.point.along_m)
+            progress("lines")
+        mesh_cell = config.mesh_cell_m if config.surfaces else np.inf
+        segments, kind, surfaces = lines_and_surfaces(local, planes, lines_config, mesh_cell, sensor)
+        if config.sensor_edges and sensor is not None and profile.rings:
+            from .sensor_edges import sensor_edges
+
+            ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
+            found, found_kind = sensor_edges(points - offset, ring, sensor, config.sensor)
+            # an edge along a plane's boundary or crease is that line (exactly fitted to its plane)
+            segments, kind = _add_edges(segments, kind, found, found_kind, config.sensor.along_plane_m)
+        if edges is not None:
+            if progress:
+                progress("point edges")
+            found = edges.result()
+            found_kind = np.full(len(found), kinds.POINT_EDGE, np.int8)
+            segments, kind = _add_edges(segments, kind, found, found_kind, config.point.along_m)
     if not config.surfaces:
         surfaces = empty_surfaces()
     reason = "" if len(segments) else _why_empty(len(planes.counts), lines_config)
@@ -118,6 +114,31 @@ def extract_map(
     return MapContent(
         segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas
     )
+
+
+def _point_edges(
+    local: np.ndarray,
+    planes: Planes,
+    profile: CloudProfile,
+    lines_config: Lines3DConfig,
+    config: MapBuildConfig,
+) -> np.ndarray:
+    """Returns (K, 6) point edges (``point_edges``) of (P, 3) local points along the scene's frame."""
+    from .plane_directions import frame_directions
+    from .point_edges import point_edges
+
+    # only along the scene's frame (a room's floor and walls): edge points of noise pile up along any
+    # direction, and a tilted plane's creases or a ragged segment's direction would collect them
+    frame, _ = frame_directions(planes.normals, planes.counts * planes.spacing_m**2, config.directions)
+    spacing = max(profile.spacing_m, lines_config.downsample_m)
+    return point_edges(local, frame, spacing, profile.noise_m, lines_config.min_length_m, config.point)
+
+
+def _now(run: Callable[..., np.ndarray], *args: Any) -> Future[np.ndarray]:
+    """Returns a finished Future of ``run(*args)``: the work done in this thread (one thread allowed)."""
+    done: Future[np.ndarray] = Future()
+    done.set_result(run(*args))
+    return done
 
 
 def _add_edges(
