@@ -13,6 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
+from ..threads import thread_count
 
 
 def refine_edges(
@@ -111,21 +112,66 @@ def refine_regions(
 def _beside_pairs(besides: list[tuple[np.ndarray, int, int]], geometry: tuple[np.ndarray, ...]) -> np.ndarray:
     """Returns (q, 4) line, t, outward offset, depth of each region's (b, 3) beside points (u, v, signed
     plane distance) within a band of each of its lines; ``besides``: per region its points and its lines
-    (first, end); geometry: (k, 2) starts, directions, outward normals, (k,) lengths, bands of all lines."""
+    (first, end); geometry: (k, 2) starts, directions, outward normals, (k,) lengths, bands of all lines.
+
+    The pairs' order does not matter (their uses are minima and counts): one KD-tree holds every
+    region's points, each region lifted along a third axis by more than any search radius, so a line
+    finds only its own region's points, at the same distances (the third difference is exactly zero).
+    """
     a, d, out, length, band = geometry
     besides = [x for x in besides if len(x[0])]
     if not besides:
         return np.zeros((0, 4))
-    base = np.cumsum([0] + [len(near) for near, _, _ in besides])
-    trees = [
-        (cKDTree(near[:, :2]), lo, hi, int(at)) for (near, lo, hi), at in zip(besides, base, strict=False)
-    ]
     beside = np.concatenate([near for near, _, _ in besides])
-    line, point = _near_pairs(trees, a, d, length, band, beside[:, :2])
+    owner = np.full(len(a), -1, dtype=np.int64)  # the region of each line, among those with points
+    for j, (_, lo, hi) in enumerate(besides):
+        owner[lo:hi] = j
+    line, step, count, samples = _samples(a, d, length, band)
+    use = owner[line] >= 0
+    line, step, samples = line[use], step[use], samples[use]
+    radius = np.hypot(band[line], 0.5 * band[line])
+    lift = 2.0 ** np.ceil(np.log2(4.0 * radius.max() + 1.0))  # a power of two: region x lift is exact
+    region = np.repeat(np.arange(len(besides)), [len(near) for near, _, _ in besides])
+    tree = cKDTree(np.c_[beside[:, :2], region * lift])
+    found = tree.query_ball_point(
+        np.c_[samples, owner[line] * lift], radius, return_sorted=False, workers=thread_count(8)
+    )
+    size = np.fromiter(map(len, found), np.int64, len(found))
+    point = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(size.sum()))
+    line, step = np.repeat(line, size), np.repeat(step, size)
+    line, point = _own_stretch(line, step, point, beside[:, :2], a, d, count, band)
     rel = beside[point, :2] - a[line]
     t, o = np.einsum("pk,pk->p", rel, d[line]), np.einsum("pk,pk->p", rel, out[line])
     keep = (t >= 0) & (t <= length[line]) & (np.abs(o) <= band[line]) & np.isfinite(o)
     return np.stack([line, t, o, beside[point, 2]], axis=1)[keep]
+
+
+def _samples(
+    a: np.ndarray, d: np.ndarray, length: np.ndarray, band: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Returns (S,) line and step of samples taken every band along each (k,) line from its start, (k,)
+    samples per line and the (S, 2) samples."""
+    count = np.ceil((length + band) / band).astype(np.int64)
+    line = np.repeat(np.arange(len(a)), count)
+    step = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)
+    return line, step, count, a[line] + (step * band[line])[:, None] * d[line]
+
+
+def _own_stretch(
+    line: np.ndarray,
+    step: np.ndarray,
+    point: np.ndarray,
+    data: np.ndarray,
+    a: np.ndarray,
+    d: np.ndarray,
+    count: np.ndarray,
+    band: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the (line, point) pairs found by the sample whose stretch holds the point: a point is
+    found by neighbouring samples too."""
+    t = np.einsum("pk,pk->p", data[point] - a[line], d[line])
+    mine = np.clip(np.floor(t / band[line] + 0.5), 0, count[line] - 1) == step
+    return line[mine], point[mine]
 
 
 def _near_pairs(
@@ -139,11 +185,8 @@ def _near_pairs(
     """Returns ((q,) line, (q,) point) distinct pairs of points near each line: all within its band of it
     along its length, and a few more (within hypot(band, band / 2) of samples taken every band).
     ``trees``: per region a KD-tree of its points (rows ``base`` on of the (N, 2) ``data``), its lines
-    [lo, hi) and ``base``."""
-    count = np.ceil((length + band) / band).astype(np.int64)
-    line = np.repeat(np.arange(len(a)), count)
-    step = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)
-    samples = a[line] + (step * band[line])[:, None] * d[line]
+    [lo, hi) and ``base``. Pairs come in each tree's order: the sums over them add in that order."""
+    line, step, count, samples = _samples(a, d, length, band)
     start = np.r_[0, np.cumsum(count)]
     points, lines, steps = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
     for tree, lo, hi, base in trees:
@@ -155,10 +198,7 @@ def _near_pairs(
         lines.append(np.repeat(line[part], size))
         steps.append(np.repeat(step[part], size))
     point, line, step = np.concatenate(points), np.concatenate(lines), np.concatenate(steps)
-    # a point is found by neighbouring samples too: it belongs to the one whose stretch holds it
-    t = np.einsum("pk,pk->p", data[point] - a[line], d[line])
-    mine = np.clip(np.floor(t / band[line] + 0.5), 0, count[line] - 1) == step
-    return line[mine], point[mine]
+    return _own_stretch(line, step, point, data, a, d, count, band)
 
 
 def _group_min(values: np.ndarray, group: np.ndarray, num: int) -> np.ndarray:
