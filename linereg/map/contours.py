@@ -19,7 +19,9 @@ def plane_basis(normal: np.ndarray) -> np.ndarray:
     axis = np.eye(3)[np.argmin(np.abs(normal))]
     e1 = axis - normal * (axis @ normal)
     e1 /= np.linalg.norm(e1)
-    return np.stack([e1, np.cross(normal, e1)])
+    # normal x e1 written out: np.cross costs more than the rest for one pair (the same products)
+    n, e = normal, e1
+    return np.array([e1, [n[1] * e[2] - n[2] * e[1], n[2] * e[0] - n[0] * e[2], n[0] * e[1] - n[1] * e[0]]])
 
 
 def region_image(uv: np.ndarray, cell: float, config: Lines3DConfig) -> tuple[np.ndarray, np.ndarray, float]:
