@@ -15,7 +15,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, NamedTuple
+from typing import Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -29,6 +29,7 @@ from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
 from .surfaces import Surfaces, empty_surfaces, shift_surfaces
 
 logger = logging.getLogger(__name__)
+T = TypeVar("T")
 
 # dense, evenly sampled clouds (``profile.kind``): every point's neighbourhood is a round patch of surface
 # a few cm across. Coarser even clouds ("map", the demo's scan) are not measured with point edges yet
@@ -79,23 +80,24 @@ def extract_map(
     if lines_config.downsample_m > 0:
         local = voxel_downsample(local, lines_config.downsample_m)
     sensor = None if profile.sensor_origin is None else np.asarray(profile.sensor_origin) - offset
-    planes = segment_planes(local, lines_config, progress)
-    # point edges need only the planes: their neighbour searches and sums (which release the GIL) run in
-    # a thread of their own while this one traces the regions' outlines (Python-bound)
+    # the sensor's edges need only the points, the point edges only the planes: their KD-tree searches
+    # and array sums (which release the GIL) run in a thread of their own while this one grows the
+    # regions and traces their outlines (Python-bound)
     with ThreadPoolExecutor(max_workers=1) as pool:
+        run = pool.submit if thread_count(2) > 1 else _now
+        sensed = None
+        if config.sensor_edges and sensor is not None and profile.rings:
+            sensed = run(_sensor_edges, points, offset, profile, sensor, config)
+        planes = segment_planes(local, lines_config, progress)
         edges = None
         if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
-            run = pool.submit if thread_count(2) > 1 else _now
             edges = run(_point_edges, local, planes, profile, lines_config, config)
         if progress:
             progress("lines")
         mesh_cell = config.mesh_cell_m if config.surfaces else np.inf
         segments, kind, surfaces = lines_and_surfaces(local, planes, lines_config, mesh_cell, sensor)
-        if config.sensor_edges and sensor is not None and profile.rings:
-            from .sensor_edges import sensor_edges
-
-            ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
-            found, found_kind = sensor_edges(points - offset, ring, sensor, config.sensor)
+        if sensed is not None:
+            found, found_kind = sensed.result()
             # an edge along a plane's boundary or crease is that line (exactly fitted to its plane)
             segments, kind = _add_edges(segments, kind, found, found_kind, config.sensor.along_plane_m)
         if edges is not None:
@@ -116,6 +118,17 @@ def extract_map(
     )
 
 
+def _sensor_edges(
+    points: np.ndarray, offset: np.ndarray, profile: CloudProfile, sensor: np.ndarray, config: MapBuildConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((K, 6) local segments, (K,) int8 kinds) of a sweep's occluding contours and ring-curvature
+    edges (``sensor_edges``) of its (P, 3) points in the map frame, ``offset`` their local origin."""
+    from .sensor_edges import sensor_edges
+
+    ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
+    return sensor_edges(points - offset, ring, sensor, config.sensor)
+
+
 def _point_edges(
     local: np.ndarray,
     planes: Planes,
@@ -134,9 +147,9 @@ def _point_edges(
     return point_edges(local, frame, spacing, profile.noise_m, lines_config.min_length_m, config.point)
 
 
-def _now(run: Callable[..., np.ndarray], *args: Any) -> Future[np.ndarray]:
+def _now(run: Callable[..., T], *args: Any) -> Future[T]:
     """Returns a finished Future of ``run(*args)``: the work done in this thread (one thread allowed)."""
-    done: Future[np.ndarray] = Future()
+    done: Future[T] = Future()
     done.set_result(run(*args))
     return done
 
