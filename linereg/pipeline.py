@@ -234,17 +234,18 @@ def decide(
         for T, value, known in alternatives:
             if value < (1.0 - dc.margin) * best.score.value:
                 break
-            # a pose that the refinement takes back to the best is the best answer less well placed, not
-            # another one (a turn and a shift that compensate along the lines' depth keep the score); a
-            # turn of the whole projection is tested as a turn (the turn test's point is that it need not dip)
-            if T is not turned[0] and in_basin(best.cam_from_world, T, image, view, camera, config):
-                continue
             # where the best's lines lie closer than the score's distance, a rival is judged at that precision
+            # (two scores: tested before the refinement below)
             if sharp is None:
                 sharp = fine_value(view, image, camera, best.cam_from_world, config)
             if sharp >= dc.sharp_keep * best.score.value and (
                 fine_value(view, image, camera, T, config) < (1.0 - dc.margin) * sharp
             ):
+                continue
+            # a pose that the refinement takes back to the best is the best answer less well placed, not
+            # another one (a turn and a shift that compensate along the lines' depth keep the score); a
+            # turn of the whole projection is tested as a turn (the turn test's point is that it need not dip)
+            if T is not turned[0] and in_basin(best.cam_from_world, T, image, view, camera, config):
                 continue
             # a rival within the margin: the best pose is still the answer if what it explains beyond the
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
@@ -408,7 +409,7 @@ def with_copies(
     regions: Sequence[tuple[np.ndarray, np.ndarray]],
 ) -> tuple[list[tuple[Score, np.ndarray]], list[Found]]:
     """Returns (the ``view_score`` of each refined pose, found) with the copies of the best refined pose
-    (by that score) among the found poses (``copy_rivals``): rivals only, never the answer (a copy taken
+    (by that score) and its orbits among the found poses (``copy_rivals``): rivals only, never the answer (a copy taken
     as the best when it scored more claimed a demo photo's upside-down twin, the truth unsolved); copies
     under the ``rotations`` searched with camera centres in the ``regions`` searched (what a prior
     admits)."""
@@ -442,18 +443,24 @@ def copy_rivals(
         cam_from_world, matched, view.points, view.signatures, view.segments, camera, list(rotations),
         config.search.arm_angle_deg, dc,
     )  # fmt: skip
-    inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
-    # the pose orbited round the scene point it looks at (a turn and a shift that compensate along the
-    # lines' depth, which the turned rival, turning about the camera centre, does not try)
     depth = depth_of(view.segments[matched], cam_from_world) if matched.any() else 1.0
-    for angle in dc.orbit_deg:
-        for axis in np.r_[np.eye(2), -np.eye(2)]:
-            turn = rotation_from_vector(np.radians(angle) * np.r_[axis, 0.0])
-            start = orbited(cam_from_world, depth, turn)
-            if _in_regions(camera_center(start), regions):
-                inside.append((start, dc.distinct_fraction * depth))
+    starts += _orbit_starts(cam_from_world, depth, dc)
+    inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
     solved = solve_all(inside, image, view.segments, camera, config.search, config.score, view.visible)
     return [s for s in solved if s is not None]
+
+
+def _orbit_starts(
+    cam_from_world: np.ndarray, depth_m: float, dc: DecideConfig
+) -> list[tuple[np.ndarray, float, float]]:
+    """Returns (start cam_from_world, size_m, 0) of the pose orbited by each of ``orbit_deg`` up, down, left
+    and right round the scene point ``depth_m`` ahead: a turn and a shift that compensate along the lines'
+    depth, which the turned rival, turning about the camera centre, does not try."""
+    size = dc.distinct_fraction * depth_m
+    turns = [
+        np.radians(angle) * np.r_[axis, 0.0] for angle in dc.orbit_deg for axis in (*np.eye(2), *-np.eye(2))
+    ]
+    return [(orbited(cam_from_world, depth_m, rotation_from_vector(w)), size, 0.0) for w in turns]
 
 
 def _in_regions(point: np.ndarray, regions: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
