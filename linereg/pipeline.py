@@ -13,6 +13,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
+from functools import partial
 from typing import TypeVar
 
 import numpy as np
@@ -238,8 +239,8 @@ def decide(
             # (two scores: tested before the refinement below)
             if sharp is None:
                 sharp = fine_value(view, image, camera, best.cam_from_world, config)
-            if sharp >= dc.sharp_keep * best.score.value and (
-                fine_value(view, image, camera, T, config) < (1.0 - dc.margin) * sharp
+            if sharp_dismisses(
+                best.score.value, sharp, partial(fine_value, view, image, camera, T, config), dc
             ):
                 continue
             # a pose that the refinement takes back to the best is the best answer less well placed, not
@@ -448,6 +449,34 @@ def copy_rivals(
     inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
     solved = solve_all(inside, image, view.segments, camera, config.search, config.score, view.visible)
     return [s for s in solved if s is not None]
+
+
+def orbit_rivals(
+    cam_from_world: np.ndarray,
+    matches: np.ndarray,
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    config: RegisterConfig,
+    visible: np.ndarray | None = None,
+) -> list[tuple[np.ndarray, Score]]:
+    """Returns (pose, Score) of a pose orbited by each of ``orbit_deg`` round the point it looks at (the
+    median depth of the (M, 6) map segments its (K, 2) ``matches`` (image row, map row) name), solved
+    locally (``solve_locally``, ``visible``: (M,) bool or None): the poses along the valley where a turn and
+    a shift compensate, as the decision's rivals (``copy_rivals``) hold them."""
+    matched = np.unique(matches[:, 1])
+    depth = depth_of(lines3d[matched], cam_from_world) if len(matched) else 1.0
+    starts = [(T, size) for T, size, _ in _orbit_starts(cam_from_world, depth, config.decide)]
+    solved = solve_all(starts, image, lines3d, camera, config.search, config.score, visible)
+    return [s for s in solved if s is not None]
+
+
+def sharp_dismisses(best: float, fine_best: float, fine_rival: Callable[[], float], dc: DecideConfig) -> bool:
+    """Returns True if a rival inside the margin is a less precise fit than the best: at ``sharp_fraction``
+    of the score's distance the best (score ``best``, there ``fine_best``) keeps ``sharp_keep`` of its
+    score and the rival (there ``fine_rival()``, scored only when the best is sharp) falls below
+    ``(1 - margin)`` of it."""
+    return fine_best >= dc.sharp_keep * best and fine_rival() < (1.0 - dc.margin) * fine_best
 
 
 def _orbit_starts(

@@ -11,8 +11,8 @@ camera can have reached since its last fix (``max_speed_m_s`` and timestamps giv
 is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
 A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
 graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
-guess (a prediction without odometry, or after a lost frame) must also pass the global decision's turn test
-(``pipeline.turned_rival``). A global relocalization (no prior) starts a track that is posed but not claimed
+guess (a prediction without odometry, or after a lost frame) must also pass the global decision's rival
+tests (the fix turned, ``pipeline.turned_rival``, and orbited, ``pipeline.orbit_rivals``). A global relocalization (no prior) starts a track that is posed but not claimed
 ("unconfirmed ...") until an independent global relocalization of a later frame lands on it
 (``confirm_global``): one frame's global answer can be a repeated structure's twin. Frames coasting on
 odometry gather in a window; once odometry no longer holds the window rigid to within the score's resolution,
@@ -27,6 +27,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import gtsam
 import numpy as np
@@ -54,13 +55,16 @@ from .graph import (
 )
 from .localization import localize_segments
 from .map.linemap import LineMap
-from .pipeline import differs, turned_rival, with_map_floor
+from .pipeline import differs, orbit_rivals, sharp_dismisses, turned_rival, with_map_floor
 from .priors import Prior
 from .registration import Registration
-from .score import ImageLines, image_lines
+from .score import ImageLines, image_lines, score_pose
 from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize, visible_mask
 
 log = logging.getLogger(__name__)
+
+# the reason of a fix refused for a rival (``Tracker._rival_test``)
+AMBIGUOUS = "tracking: ambiguous"
 
 
 def _tracking_sequence() -> SequenceConfig:
@@ -209,7 +213,9 @@ class Tracker:
                     return replace(added, success=False, reason=doubt)
                 return self._claimed(added, stamp)
         self._lost += 1
-        if enough and (self._lost - 1) % cfg.relocalize_every == 0:
+        # a fix refused for its rivals is a frame the search near the prediction must decide, at once
+        rivalled = tracked.reason.startswith(AMBIGUOUS)
+        if enough and (rivalled or (self._lost - 1) % cfg.relocalize_every == 0):
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
             ball = self._reach(stamp) if near is None else None
             found = self._relocalize(lines, near, radius, ball)
@@ -303,27 +309,50 @@ class Tracker:
                 reason = f"tracking: explains {100 * best.explained_fraction:.0f} % of the lines, the recent frames {100 * usual:.0f} %"
                 return replace(best, success=False, reason=reason)
         if best.success and guessed:
-            best = self._turn_test(image, best)
+            best = self._rival_test(image, best)
         if best.success:
             self._explained = [*self._explained[-4:], best.explained_fraction]
         return best
 
-    def _turn_test(self, image: ImageLines, fix: Registration) -> Registration:
-        """Returns the fix, or no fix (``success=False``) when the fix turned beyond the decision's
-        ``distinct_angle_deg`` scores above ``(1 - margin)`` of it (``pipeline.turned_rival``): where the
-        image's clutter lets a displaced copy of the map explain nearly as much, the alignment is chance.
-        Run on fixes from a guessed prediction only (no odometry, or frames lost; 7-9 ms): a frame tracked
-        by odometry from its fixed predecessor has the innovation gate's evidence besides its own lines."""
+    def _rival_test(self, image: ImageLines, fix: Registration) -> Registration:
+        """Returns the fix, or no fix (``success=False``) when a distinct pose scores above ``(1 - margin)``
+        of it, as in the global decision: the fix turned beyond ``distinct_angle_deg``
+        (``pipeline.turned_rival``: where the image's clutter lets a displaced copy of the map explain
+        nearly as much, the alignment is chance) and the fix orbited round the point it looks at, solved
+        locally (``pipeline.orbit_rivals``: a turn and a shift that compensate along a facade, where a
+        refinement from a guess stops wherever it lands). A rival is set aside where the fix is sharp and
+        the rival is not (``pipeline.sharp_dismisses``). Run on fixes from a guessed prediction only (no
+        odometry, or frames lost; 25-30 ms): a frame tracked by odometry from its fixed predecessor has the
+        innovation gate's evidence besides its own lines. A refused fix leaves the frame lost, and the
+        relocalization near the prediction (search and decision) answers it."""
         rc = self.config.sequence.register
-        centre = camera_center(fix.cam_from_world)
-        visible = visible_mask(self.line_map, centre, self.config.sequence.relocalize_radius_m)
-        T, value = turned_rival(fix.cam_from_world, image, self.line_map.segments, self._cam, rc, visible)
-        if value < (1.0 - rc.decide.margin) * fix.score:
-            return fix
-        turn = rotation_error_deg(T[:3, :3], fix.cam_from_world[:3, :3])
-        share = 100 * value / fix.score if fix.score > 0 else float("inf")
-        reason = f"tracking: ambiguous: the fix turned {turn:.0f} deg scores {share:.0f} % of it"
-        return replace(fix, success=False, reason=reason)
+        dc, segments, T0 = rc.decide, self.line_map.segments, fix.cam_from_world
+        visible = visible_mask(self.line_map, camera_center(T0), self.config.sequence.relocalize_radius_m)
+        turned = turned_rival(T0, image, segments, self._cam, rc, visible)
+        orbits = orbit_rivals(T0, fix.matches, image, segments, self._cam, rc, visible)
+        rivals = sorted([turned, *((T, s.value) for T, s in orbits)], key=lambda r: -r[1])
+        fine = replace(rc.score, distance_px=dc.sharp_fraction * rc.score.distance_px)
+
+        def fine_value(T: np.ndarray) -> float:
+            return score_pose(image, segments, self._cam, T, fine, visible).value
+
+        sharp: float | None = None
+        for T, value in rivals:
+            if value < (1.0 - dc.margin) * fix.score:
+                return fix
+            if T is not turned[0] and not differs(T, T0, segments, dc):
+                continue
+            if sharp is None:
+                sharp = fine_value(T0)
+            if sharp_dismisses(fix.score, sharp, partial(fine_value, T), dc):
+                continue
+            turn = rotation_error_deg(T[:3, :3], T0[:3, :3])
+            shift = float(np.linalg.norm(camera_center(T) - camera_center(T0)))
+            share = 100 * value / fix.score if fix.score > 0 else float("inf")
+            kind = "turned" if T is turned[0] else "orbited"
+            reason = f"{AMBIGUOUS}: the fix {kind} {turn:.0f} deg ({shift:.2f} m) scores {share:.0f} % of it"
+            return replace(fix, success=False, reason=reason)
+        return fix
 
     def _doubt(
         self, tracked: Registration, predicted: np.ndarray, step: np.ndarray | None, cov: np.ndarray | None

@@ -1,5 +1,5 @@
 """Tracking's trust: a global relocalization is claimed only once an independent one agrees; a fix from a
-guessed prediction must pass the global decision's turn test; a top speed bounds where a lost camera is."""
+guessed prediction must pass the global decision's rival tests; a top speed bounds where a lost camera is."""
 
 from __future__ import annotations
 
@@ -40,17 +40,46 @@ def _lattice() -> tuple[LineMap, np.ndarray, np.ndarray]:
     return LineMap.from_segments(lines3d), cam_from_world, project_visible(lines3d, CAMERA, cam_from_world)[0]
 
 
-def test_a_fix_from_a_guess_must_pass_the_turn_test():
-    line_map, cam_from_world, frame = _lattice()
+def _patch(half_m: float = 0.5) -> tuple[LineMap, np.ndarray, np.ndarray]:
+    """Returns (map, cam_from_world, (N, 4) segments): 12 random lines on a patch of a wall 2 * half_m
+    wide seen square-on from 6 m; orbiting the camera round the patch (a turn and a shift that compensate)
+    barely moves them."""
+    rng = np.random.default_rng(1)
+    a = rng.uniform(-half_m, half_m, (12, 2))
+    b = a + rng.uniform(-0.6, 0.6, (12, 2)) * half_m
+    lines3d = np.c_[a[:, 0], np.full(12, 6.0), a[:, 1], b[:, 0], np.full(12, 6.0), b[:, 1]]
+    cam_from_world = look_at(np.zeros(3), np.array([0.0, 6.0, 0.0]))
+    return LineMap.from_segments(lines3d), cam_from_world, project_visible(lines3d, CAMERA, cam_from_world)[0]
+
+
+def _first_step(scene: tuple[LineMap, np.ndarray, np.ndarray], noise_px: float, odometry: bool):
+    """Returns (Registration, event) of a tracker started at the true pose, standing still, stepping on
+    the scene's segments with seeded noise of ``noise_px``."""
+    line_map, cam_from_world, frame = scene
+    frame = frame + np.random.default_rng(0).normal(0.0, noise_px, frame.shape)
+    tracker = Tracker(line_map, CAMERA)
+    tracker.start_at(cam_from_world)
+    r = tracker.step(frame, np.eye(4) if odometry else None)
+    return r, tracker.event
+
+
+def test_a_fix_from_a_guess_must_pass_the_decisions_rival_tests():
+    """Odometry predicts; a constant-velocity guess does not, and its fix is claimed only where no distinct
+    pose scores within the decision's margin, the fix turned (a lattice's copy one period over) or orbited
+    round what it looks at (a small wall patch), unless the fix is sharp and the rival is not."""
+    lattice, patch = _lattice(), _patch()
+    # exact lines: the fix is sharp, the lattice's turned copy (94 % of it) is not: a fix either way
     for odometry in (True, False):
-        tracker = Tracker(line_map, CAMERA)
-        tracker.start_at(cam_from_world)
-        r = tracker.step(frame, np.eye(4) if odometry else None)  # standing still: the fix is exact
-        assert pose_errors(r.cam_from_world, cam_from_world)[1] < 1e-3
-        # odometry predicts; constant velocity guesses, and a turned copy of the lattice scores 94 %
-        assert r.success == odometry
-        if not odometry:
-            assert tracker.event == "predicted" and "ambiguous: the fix turned" in r.reason
+        r, event = _first_step(lattice, 0.0, odometry)
+        assert r.success and event == "tracked" and pose_errors(r.cam_from_world, lattice[1])[1] < 1e-3
+    # 1 px of noise: the fix is no longer sharp; the copy is a rival the guess cannot rule out
+    assert _first_step(lattice, 1.0, True)[0].success
+    r, event = _first_step(lattice, 1.0, False)
+    assert not r.success and event == "predicted" and "ambiguous: the fix turned" in r.reason
+    # the patch orbited by 3 or 6 deg scores as much: an odometry fix, no fix from a guess
+    assert _first_step(patch, 1.0, True)[0].success
+    r, event = _first_step(patch, 1.0, False)
+    assert not r.success and event == "predicted" and "ambiguous: the fix orbited" in r.reason
 
 
 def test_after_a_long_loss_a_top_speed_keeps_the_relocalization_within_reach():
