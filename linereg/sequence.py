@@ -1,8 +1,9 @@
 """``localize_sequence``: many frames of one camera, with optional odometry, smoothed in ONE GTSAM graph.
 
 1. Each frame alone (``alone``): refined from its prediction (odometry from the last fix, else constant
-   velocity); failing that, registered near the prediction (a ``Prior``); globally only for the first
-   frame and frames after a loss without odometry.
+   velocity), a fix only if no distinct pose near it scores as well (``rival_test``); failing that,
+   registered near the prediction (a ``Prior``); globally only for the first frame and frames after a
+   loss without odometry.
 2. One graph over all frames: a line-projection factor per frame on its matched fragments (the
    refinement's vectorised factor, Huber kernel in pixels, noise = the frame's own residual level), a
    ``BetweenFactorPose3`` per odometry step with its covariance, and, only when asked
@@ -19,6 +20,7 @@ import logging
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
+from functools import partial
 
 import gtsam
 import numpy as np
@@ -26,7 +28,7 @@ import numpy as np
 from .camera import Camera
 from .config import LineDetectConfig, RegisterConfig
 from .errors import InvalidInputError
-from .geometry import camera_center
+from .geometry import camera_center, rotation_error_deg
 from .graph import (
     LineFit,
     check_covariance,
@@ -45,7 +47,7 @@ from .graph import (
 )
 from .localization import localize_segments
 from .map.linemap import LineMap
-from .pipeline import with_map_floor
+from .pipeline import differs, orbit_rivals, sharp_dismisses, turned_rival, with_map_floor
 from .priors import Prior
 from .refine import refine_pose
 from .registration import Registration
@@ -54,6 +56,7 @@ from .score import ImageLines, image_lines, score_pose
 log = logging.getLogger(__name__)
 
 FROM_NEIGHBOURS = "from neighbours"  # the reason of a frame posed by the graph, not by its own lines
+AMBIGUOUS = "tracking: ambiguous"  # the reason of a fix refused for a rival (``rival_test``)
 
 
 @dataclass(frozen=True)
@@ -193,6 +196,47 @@ def refine_from(
     )  # fmt: skip
 
 
+def rival_test(
+    image: ImageLines, line_map: LineMap, camera: Camera, fix: Registration, config: SequenceConfig
+) -> Registration:
+    """Returns a fix (``refine_from``), or no fix (``success=False``, reason ``AMBIGUOUS`` ...) when a
+    distinct pose scores above ``(1 - margin)`` of it, as in the global decision: the fix turned beyond
+    ``distinct_angle_deg`` (``pipeline.turned_rival``: where the image's clutter lets a displaced copy of
+    the map explain nearly as much, the alignment is chance) and the fix orbited round the point it looks
+    at, solved locally (``pipeline.orbit_rivals``: a turn and a shift that compensate along a facade, where
+    a refinement stops wherever its start lies). A rival is set aside where the fix is sharp and the rival
+    is not (``pipeline.sharp_dismisses``). 25-30 ms. A refused fix leaves the frame to the search near its
+    prediction (``relocalize``: search and decision)."""
+    rc = config.register
+    dc, segments, T0 = rc.decide, line_map.segments, fix.cam_from_world
+    visible = visible_mask(line_map, camera_center(T0), config.relocalize_radius_m)
+    turned = turned_rival(T0, image, segments, camera, rc, visible)
+    orbits = orbit_rivals(T0, fix.matches, image, segments, camera, rc, visible)
+    rivals = sorted([turned, *((T, s.value) for T, s in orbits)], key=lambda r: -r[1])
+    fine = replace(rc.score, distance_px=dc.sharp_fraction * rc.score.distance_px)
+
+    def fine_value(T: np.ndarray) -> float:
+        return score_pose(image, segments, camera, T, fine, visible).value
+
+    sharp: float | None = None
+    for T, value in rivals:
+        if value < (1.0 - dc.margin) * fix.score:
+            return fix
+        if T is not turned[0] and not differs(T, T0, segments, dc):
+            continue
+        if sharp is None:
+            sharp = fine_value(T0)
+        if sharp_dismisses(fix.score, sharp, partial(fine_value, T), dc):
+            continue
+        turn = rotation_error_deg(T[:3, :3], T0[:3, :3])
+        shift = float(np.linalg.norm(camera_center(T) - camera_center(T0)))
+        share = 100 * value / fix.score if fix.score > 0 else float("inf")
+        kind = "turned" if T is turned[0] else "orbited"
+        reason = f"{AMBIGUOUS}: the fix {kind} {turn:.0f} deg ({shift:.2f} m) scores {share:.0f} % of it"
+        return replace(fix, success=False, reason=reason)
+    return fix
+
+
 def visible_mask(line_map: LineMap, centre: np.ndarray, radius_m: float) -> np.ndarray | None:
     """Returns (M,) bool of the map segments that may be seen from within ``radius_m`` of a (3,) centre
     (the map's potentially-visible sets), or None when the map has no surfaces to hide anything."""
@@ -246,6 +290,8 @@ def frames_alone(
         follows = k == 0 or (fix is not None and fix[0] == k - 1)
         if follows and predicted is not None and len(lines[k]) >= config.register.min_lines2d:
             result = refine_from(image, line_map, camera, predicted, radius, config)
+            if result.success:  # no innovation gate here (the tracker's): its rivals are the evidence
+                result = rival_test(image, line_map, camera, result, config)
         lost = k - (fix[0] if fix else -1) - 1  # frames since the last fix
         if not result.success and (lost < config.relocalize_every or lost % config.relocalize_every == 0):
             start = time.perf_counter()

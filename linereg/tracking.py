@@ -12,7 +12,8 @@ is re-anchored every ``window`` frames (a prior with the newest pose's covarianc
 A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
 graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
 guess (a prediction without odometry, or after a lost frame) must also pass the global decision's rival
-tests (the fix turned, ``pipeline.turned_rival``, and orbited, ``pipeline.orbit_rivals``). A global relocalization (no prior) starts a track that is posed but not claimed
+tests (``sequence.rival_test``: the fix turned and orbited); one refused for a rival is relocalized near
+its prediction at once. A global relocalization (no prior) starts a track that is posed but not claimed
 ("unconfirmed ...") until an independent global relocalization of a later frame lands on it
 (``confirm_global``): one frame's global answer can be a repeated structure's twin. Frames coasting on
 odometry gather in a window; once odometry no longer holds the window rigid to within the score's resolution,
@@ -27,7 +28,6 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field, replace
-from functools import partial
 
 import gtsam
 import numpy as np
@@ -35,7 +35,7 @@ import numpy as np
 from .align import align_window, rotation_prior
 from .camera import Camera
 from .errors import InvalidInputError
-from .geometry import camera_center, rotation_error_deg
+from .geometry import camera_center
 from .graph import (
     LineFit,
     check_relative_pose,
@@ -55,16 +55,21 @@ from .graph import (
 )
 from .localization import localize_segments
 from .map.linemap import LineMap
-from .pipeline import differs, orbit_rivals, sharp_dismisses, turned_rival, with_map_floor
+from .pipeline import differs, with_map_floor
 from .priors import Prior
 from .registration import Registration
-from .score import ImageLines, image_lines, score_pose
-from .sequence import FROM_NEIGHBOURS, SequenceConfig, refine_from, relocalize, visible_mask
+from .score import ImageLines, image_lines
+from .sequence import (
+    AMBIGUOUS,
+    FROM_NEIGHBOURS,
+    SequenceConfig,
+    refine_from,
+    relocalize,
+    rival_test,
+    visible_mask,
+)
 
 log = logging.getLogger(__name__)
-
-# the reason of a fix refused for a rival (``Tracker._rival_test``)
-AMBIGUOUS = "tracking: ambiguous"
 
 
 def _tracking_sequence() -> SequenceConfig:
@@ -309,50 +314,10 @@ class Tracker:
                 reason = f"tracking: explains {100 * best.explained_fraction:.0f} % of the lines, the recent frames {100 * usual:.0f} %"
                 return replace(best, success=False, reason=reason)
         if best.success and guessed:
-            best = self._rival_test(image, best)
+            best = rival_test(image, self.line_map, self._cam, best, self.config.sequence)
         if best.success:
             self._explained = [*self._explained[-4:], best.explained_fraction]
         return best
-
-    def _rival_test(self, image: ImageLines, fix: Registration) -> Registration:
-        """Returns the fix, or no fix (``success=False``) when a distinct pose scores above ``(1 - margin)``
-        of it, as in the global decision: the fix turned beyond ``distinct_angle_deg``
-        (``pipeline.turned_rival``: where the image's clutter lets a displaced copy of the map explain
-        nearly as much, the alignment is chance) and the fix orbited round the point it looks at, solved
-        locally (``pipeline.orbit_rivals``: a turn and a shift that compensate along a facade, where a
-        refinement from a guess stops wherever it lands). A rival is set aside where the fix is sharp and
-        the rival is not (``pipeline.sharp_dismisses``). Run on fixes from a guessed prediction only (no
-        odometry, or frames lost; 25-30 ms): a frame tracked by odometry from its fixed predecessor has the
-        innovation gate's evidence besides its own lines. A refused fix leaves the frame lost, and the
-        relocalization near the prediction (search and decision) answers it."""
-        rc = self.config.sequence.register
-        dc, segments, T0 = rc.decide, self.line_map.segments, fix.cam_from_world
-        visible = visible_mask(self.line_map, camera_center(T0), self.config.sequence.relocalize_radius_m)
-        turned = turned_rival(T0, image, segments, self._cam, rc, visible)
-        orbits = orbit_rivals(T0, fix.matches, image, segments, self._cam, rc, visible)
-        rivals = sorted([turned, *((T, s.value) for T, s in orbits)], key=lambda r: -r[1])
-        fine = replace(rc.score, distance_px=dc.sharp_fraction * rc.score.distance_px)
-
-        def fine_value(T: np.ndarray) -> float:
-            return score_pose(image, segments, self._cam, T, fine, visible).value
-
-        sharp: float | None = None
-        for T, value in rivals:
-            if value < (1.0 - dc.margin) * fix.score:
-                return fix
-            if T is not turned[0] and not differs(T, T0, segments, dc):
-                continue
-            if sharp is None:
-                sharp = fine_value(T0)
-            if sharp_dismisses(fix.score, sharp, partial(fine_value, T), dc):
-                continue
-            turn = rotation_error_deg(T[:3, :3], T0[:3, :3])
-            shift = float(np.linalg.norm(camera_center(T) - camera_center(T0)))
-            share = 100 * value / fix.score if fix.score > 0 else float("inf")
-            kind = "turned" if T is turned[0] else "orbited"
-            reason = f"{AMBIGUOUS}: the fix {kind} {turn:.0f} deg ({shift:.2f} m) scores {share:.0f} % of it"
-            return replace(fix, success=False, reason=reason)
-        return fix
 
     def _doubt(
         self, tracked: Registration, predicted: np.ndarray, step: np.ndarray | None, cov: np.ndarray | None
