@@ -444,8 +444,7 @@ def copy_rivals(
         cam_from_world, matched, view.points, view.signatures, view.segments, camera, list(rotations),
         config.search.arm_angle_deg, dc,
     )  # fmt: skip
-    depth = depth_of(view.segments[matched], cam_from_world) if matched.any() else 1.0
-    starts += _orbit_starts(cam_from_world, depth, dc)
+    starts += _orbit_starts(cam_from_world, view.segments[matched], dc)
     inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
     solved = solve_all(inside, image, view.segments, camera, config.search, config.score, view.visible)
     return [s for s in solved if s is not None]
@@ -464,9 +463,8 @@ def orbit_rivals(
     median depth of the (M, 6) map segments its (K, 2) ``matches`` (image row, map row) name), solved
     locally (``solve_locally``, ``visible``: (M,) bool or None): the poses along the valley where a turn and
     a shift compensate, as the decision's rivals (``copy_rivals``) hold them."""
-    matched = np.unique(matches[:, 1])
-    depth = depth_of(lines3d[matched], cam_from_world) if len(matched) else 1.0
-    starts = [(T, size) for T, size, _ in _orbit_starts(cam_from_world, depth, config.decide)]
+    matched = lines3d[np.unique(matches[:, 1])]
+    starts = [(T, size) for T, size, _ in _orbit_starts(cam_from_world, matched, config.decide)]
     solved = solve_all(starts, image, lines3d, camera, config.search, config.score, visible)
     return [s for s in solved if s is not None]
 
@@ -480,11 +478,13 @@ def sharp_dismisses(best: float, fine_best: float, fine_rival: Callable[[], floa
 
 
 def _orbit_starts(
-    cam_from_world: np.ndarray, depth_m: float, dc: DecideConfig
+    cam_from_world: np.ndarray, matched: np.ndarray, dc: DecideConfig
 ) -> list[tuple[np.ndarray, float, float]]:
     """Returns (start cam_from_world, size_m, 0) of the pose orbited by each of ``orbit_deg`` up, down, left
-    and right round the scene point ``depth_m`` ahead: a turn and a shift that compensate along the lines'
-    depth, which the turned rival, turning about the camera centre, does not try."""
+    and right round the scene point at the median depth of the (K, 6) map segments it ``matched`` (1 m if
+    none): a turn and a shift that compensate along the lines' depth, which the turned rival, turning about
+    the camera centre, does not try."""
+    depth_m = depth_of(matched, cam_from_world) if len(matched) else 1.0
     size = dc.distinct_fraction * depth_m
     turns = [
         np.radians(angle) * np.r_[axis, 0.0] for angle in dc.orbit_deg for axis in (*np.eye(2), *-np.eye(2))
