@@ -296,7 +296,10 @@ class RotationConfig:
     # spurious confirmation then leaves only wrong ones); each costs a translation screening
     max_unconfirmed: int = 8
     refit: bool = True  # re-fit each candidate's R to the member segments of its paired VDs, not the VDs
-    single_step_deg: float = 10.0  # one matched direction: the free angle about it in steps of this
+    # one matched direction leaves an angle about it: scored by the image segments the other map directions
+    # explain within this (``free_angle_scores``) ...
+    single_tolerance_deg: float = 4.0
+    single_min_share: float = 0.5  # ... the angles of local maxima scoring this share of the best are tried
 
 
 @dataclass(frozen=True)

@@ -107,14 +107,14 @@ def register_undistorted(
     with timer("vanishing"):
         vds = vanishing_directions(lines2d, camera, config.vanishing)
     # III-B, eq. (2): rotation candidates from VD <-> parallel-cluster pairings and signs (Algorithm 1); one
-    # matched direction leaves an angle about it, searched in steps; a prior keeps those it admits
+    # matched direction leaves an angle about it, its angles scored against the other directions; a prior keeps those it admits
     with timer("rotation"):
         candidates = rotation_candidates(vds, view.clusters, config.rotation)
         if config.rotation.refit:
             candidates = refine_candidates(candidates, vds, view.clusters, lines2d, camera)
         rotations = [c.R for c in candidates]
         if not rotations:
-            rotations = single_direction_candidates(vds, view.clusters, config.rotation)
+            rotations = single_direction_candidates(vds, view.clusters, lines2d, camera, config.rotation)
         if prior is not None and prior.cam_from_world is not None:
             rotations.append(prior.cam_from_world[:3, :3])
         rotations = [R for R in rotations if admits(prior, R)]

@@ -101,26 +101,123 @@ def _scored(
 
 
 def single_direction_candidates(
-    vds: DirectionClusters, clusters: DirectionClusters, config: RotationConfig | None = None
+    vds: DirectionClusters,
+    clusters: DirectionClusters,
+    lines2d: np.ndarray,
+    camera: Camera,
+    config: RotationConfig | None = None,
 ) -> list[np.ndarray]:
     """Returns (3, 3) rotations that map a 3D cluster direction (either sense) onto the strongest vanishing
-    direction, every ``single_step_deg`` about it: one matched direction leaves that angle free, and the
-    search (whose arm test allows a few degrees) finds the rest.
+    direction, at the angles about it where the map's other directions explain the most image segments.
+
+    One matched direction leaves the angle about it free. For each of the ``top_k`` strongest clusters and
+    each sense, every angle is scored by the length of the image segments (those not of the matched VD) whose
+    interpretation plane holds some other map direction within ``single_tolerance_deg`` (``free_angle_scores``:
+    on a grid with a bound, so no angle is skipped). The local maxima holding at least ``single_min_share`` of
+    the best are re-fitted to their segments (``_refit``); at most ``max_candidates``, best first.
 
     Used when two directions do not pair (an image with one vanishing direction: a single facade seen
-    head-on, a corridor); the strongest ``top_k`` clusters are tried.
+    head-on, a corridor, clutter hiding the second direction's VD).
     """
     config = config or RotationConfig()
     if len(vds) == 0 or len(clusters) == 0:
         return []
     v = vds.directions[0]
-    steps = np.radians(np.arange(0.0, 360.0, config.single_step_deg))
-    out = []
+    normals = interpretation_normals(lines2d, camera)
+    lengths = segment_lengths(lines2d)
+    free = vds.labels != 0 if len(vds.labels) == len(lines2d) else np.ones(len(lines2d), bool)
+    # a segment whose plane holds the matched direction is explained whatever the angle: it says nothing
+    free &= np.abs(normals @ v) > np.sin(np.radians(config.single_tolerance_deg))
+    found: list[tuple[float, np.ndarray]] = []
     for c in range(min(len(clusters), config.top_k)):
         for sign in (1.0, -1.0):
             R0 = _align(sign * clusters.directions[c], v)
-            out += [rotation_from_vector(angle * v) @ R0 for angle in steps]
-    return out
+            others = clusters.directions[np.abs(clusters.directions @ clusters.directions[c]) < 0.99]
+            if len(others) == 0:
+                continue
+            angles, score = free_angle_scores(
+                v, normals[free], lengths[free], others @ R0.T, config.single_tolerance_deg
+            )
+            for k in _circular_peaks(score, config.single_min_share * float(score.max())):
+                R = rotation_from_vector(angles[k] * v) @ R0
+                found.append(
+                    (float(score[k]), _refit_free(R, v, c, sign, normals, lengths, free, clusters, config))
+                )
+    if not found:
+        return []
+    found.sort(key=lambda f: -f[0])
+    R = np.array([f[1] for f in found])
+    order = _dedupe(R, np.arange(len(R)), config.dedupe_angle_deg)[: config.max_candidates]
+    return [R[n] for n in order]
+
+
+def free_angle_scores(
+    axis: np.ndarray, normals: np.ndarray, lengths: np.ndarray, directions: np.ndarray, tolerance_deg: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((A,) angles in radians, (A,) scores): the length of the segments ((N, 3) interpretation-plane
+    normals, (N,) lengths; camera frame) whose plane holds some of the (K, 3) camera-frame ``directions``
+    within ``tolerance_deg`` once they are turned by the angle about ``axis``.
+
+    A bound, not a sample: turning by t moves ``n . R(t) d`` by at most |t| (radians), so each grid angle
+    is scored with the tolerance widened by half the grid step and no angle between grid points can score
+    more than the larger of its neighbours. The step is half the tolerance.
+    """
+    step = np.radians(tolerance_deg) / 2.0
+    angles = np.arange(0.0, 2.0 * np.pi, step)
+    # n . Rot(axis, t) R0 d with R0 d = p + q (p along the axis, q across) is n.p + cos t n.q + sin t n.(axis x q)
+    along = directions @ axis
+    across = directions - along[:, None] * axis
+    side = np.cross(axis, across)
+    a, b, c = normals @ across.T, normals @ side.T, np.outer(normals @ axis, along)  # (N, K)
+    limit = np.sin(np.radians(tolerance_deg)) + step / 2.0
+    score = np.empty(len(angles))
+    for k, t in enumerate(angles):
+        near = np.abs(c + np.cos(t) * a + np.sin(t) * b) <= limit  # (N, K)
+        score[k] = lengths[near.any(axis=1)].sum()
+    return angles, score
+
+
+def _circular_peaks(score: np.ndarray, floor: float) -> np.ndarray:
+    """Returns the indices of the local maxima of a circular (A,) score at or above ``floor``, one per
+    plateau (its middle)."""
+    up = score >= np.roll(score, 1)
+    down = score >= np.roll(score, -1)
+    peak = up & down & (score >= floor) & (score > 0)
+    index = np.flatnonzero(peak)
+    # a plateau is one run of peak flags: keep its middle
+    if len(index) == 0 or len(index) == len(score):
+        return index[:1]
+    runs = np.split(index, np.flatnonzero(np.diff(index) > 1) + 1)
+    if len(runs) > 1 and runs[0][0] == 0 and runs[-1][-1] == len(score) - 1:
+        runs = [np.concatenate([runs[-1], runs[0] + len(score)]), *runs[1:-1]]
+    return np.array([r[len(r) // 2] % len(score) for r in runs], dtype=np.int64)
+
+
+def _refit_free(
+    R: np.ndarray,
+    v: np.ndarray,
+    c: int,
+    sign: float,
+    normals: np.ndarray,
+    lengths: np.ndarray,
+    free: np.ndarray,
+    clusters: DirectionClusters,
+    config: RotationConfig,
+) -> np.ndarray:
+    """Returns R re-fitted (``_refit``) to the segments of the matched direction and the free segments that
+    a map direction explains under R (each with its nearest), or R if it would move more than the tolerance."""
+    D = clusters.directions
+    labels = np.full(len(normals), -1, dtype=np.int64)
+    labels[~free & (np.abs(normals @ v) <= np.sin(np.radians(config.single_tolerance_deg)))] = 0
+    dots = np.abs(normals @ R @ D.T)  # (N, K)
+    nearest = np.argmin(dots, axis=1)
+    explained = free & (
+        dots[np.arange(len(normals)), nearest] <= np.sin(np.radians(config.single_tolerance_deg))
+    )
+    labels[explained] = 1 + nearest[explained]
+    pairs = ((0, c, int(sign)), *((1 + b, b, 1) for b in range(len(D)) if b != c))
+    refit = _refit(R, pairs, labels, normals, lengths**2, D, 3)
+    return refit if rotation_error_deg(refit, R) < 2.0 * config.single_tolerance_deg else R
 
 
 def _align(a: np.ndarray, b: np.ndarray) -> np.ndarray:

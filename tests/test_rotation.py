@@ -256,3 +256,68 @@ def test_refine_candidates_pulls_an_off_rotation_onto_the_segments():
     # nothing to fit on (labels of another size): candidates come back unchanged
     bare = DirectionClusters(vds.directions, np.zeros(0, dtype=np.int64), vds.support)
     assert refine_candidates([off], bare, cl, scene.lines2d, scene.camera)[0] is off
+
+
+def one_direction_scene(rng, camera, noise_px):
+    """Returns (image segments, the vanishing directions found on the first world direction alone, the map's
+    clusters): 40 image lines along that direction, 6 along each of two others (too few for a VD)."""
+    directions = unit(GENERIC_3)
+    parts = [
+        scene_segments(rng, camera, [d], n, noise_px) for d, n in zip(directions, (40, 6, 6), strict=True)
+    ]
+    lines2d = np.vstack([p[0] for p in parts])
+    labels = np.r_[np.zeros(40, np.int64), np.full(12, -1)]
+    v = unit(directions[0] @ R_TRUE.T)
+    vds = DirectionClusters(v[None] * np.sign(v[2]), labels, np.array([1.0]))
+    return lines2d, vds, clusters(directions)
+
+
+@pytest.mark.parametrize("noise_px, tolerance_deg", [(0.0, 0.05), (1.0, 1.0)])
+def test_one_vanishing_direction_leaves_an_angle_that_is_searched_not_sampled(
+    camera, rng, noise_px, tolerance_deg
+):
+    from linereg.rotation import single_direction_candidates
+
+    lines2d, vds, found = one_direction_scene(rng, camera, noise_px)
+    rotations = single_direction_candidates(vds, found, lines2d, camera)
+    assert 0 < len(rotations) <= RotationConfig().max_candidates
+    errors = [rotation_error_deg(R, R_TRUE) for R in rotations]
+    # the truth's angle about the matched direction is no multiple of any step: it is found, to the noise
+    assert min(errors) < tolerance_deg, sorted(errors)[:3]
+    for R in rotations:
+        np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    # six segments of one other direction fix the angle as well as six of each
+    keep = np.r_[np.arange(46)]
+    subset = DirectionClusters(vds.directions, vds.labels[keep], vds.support)
+    errors = [
+        rotation_error_deg(R, R_TRUE)
+        for R in single_direction_candidates(subset, found, lines2d[keep], camera)
+    ]
+    assert min(errors) < tolerance_deg
+
+
+def test_free_angle_scores_bound_every_angle_between_grid_points():
+    from linereg.rotation import free_angle_scores
+
+    rng = np.random.default_rng(5)
+    axis = unit([0.2, -0.1, 1.0])
+    directions = unit(rng.normal(size=(3, 3)))
+    normals = unit(rng.normal(size=(200, 3)))
+    lengths = rng.uniform(10, 100, 200)
+    angles, score = free_angle_scores(axis, normals, lengths, directions, 2.0)
+    step = angles[1] - angles[0]
+    # the exact score at fine angles never exceeds the larger grid neighbour's bound
+    for t in rng.uniform(0, 2 * np.pi, 300):
+        turned = directions @ rotation_about(axis, np.degrees(t)).T
+        exact = lengths[(np.abs(normals @ turned.T) <= np.sin(np.radians(2.0))).any(axis=1)].sum()
+        k = int(t // step) % len(angles)
+        assert exact <= max(score[k], score[(k + 1) % len(angles)]) + 1e-9
+
+
+def test_no_vanishing_direction_no_single_direction_candidates(camera):
+    from linereg.rotation import single_direction_candidates
+
+    empty = DirectionClusters(np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros(0))
+    lines = np.array([[10.0, 10, 100, 100]])
+    assert single_direction_candidates(empty, clusters(PERPENDICULAR), lines, camera) == []
+    assert single_direction_candidates(vds_of(PERPENDICULAR[:1]), empty, lines, camera) == []
