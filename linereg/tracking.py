@@ -7,8 +7,9 @@ odometry with its covariance, or the constant-velocity model with ``velocity_sig
 its marginal covariance back. A frame failing the checks is a loss: with odometry it gets the predicted
 pose from the graph (``success=False``, reason "from neighbours ..."); a relocalization then runs, near the
 prediction (a ``Prior``), or after ``global_after_frames`` lost frames without odometry in the ball the
-camera can have reached since its last fix (``max_speed_m_s`` and timestamps given), else globally. The graph
-is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
+camera can have reached since its last fix (``max_speed_m_s`` and timestamps given), else globally. A
+relocalization near a prediction that odometry made joins the graph as a tracked fix does (odometry factor,
+innovation gate); any other restarts the graph at its pose. The graph is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
 A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
 graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
 guess (a prediction without odometry, or after a lost frame) must also pass the global decision's rival
@@ -224,6 +225,14 @@ class Tracker:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
             ball = self._reach(stamp) if near is None else None
             found = self._relocalize(lines, near, radius, ball)
+            if found.success and near is not None and relative is not None and self._pose is not None:
+                # odometry links this frame to the track: the fix joins its graph as a tracked one does
+                # (gated, weighed against the odometry) instead of restarting it at one frame's answer
+                self.event = "relocalized"
+                doubt = self._doubt(found, near, step, cov)
+                added = self._add(image, found, step, cov)
+                doubt = self._confirm(lines, image, added) or doubt
+                return replace(added, success=False, reason=doubt) if doubt else self._claimed(added, stamp)
             if found.success:
                 self.event = "initialized" if self._pose is None else "relocalized"
                 previous, consecutive = self._pose, self._lost == 1

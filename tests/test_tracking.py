@@ -111,3 +111,34 @@ def test_a_top_speed_must_be_positive():
     for bad in (0.0, -1.0, float("nan"), float("inf")):
         with pytest.raises(InvalidInputError, match="max_speed_m_s"):
             Tracker(line_map, CAMERA, TrackingConfig(max_speed_m_s=bad))
+
+
+def test_a_relocalization_joins_the_odometrys_graph_and_its_gate(monkeypatch):
+    """With odometry, a frame whose tracked fit fails is relocalized near its prediction; the fix joins the
+    track's graph as a tracked one does: an exact one is claimed, one the odometry contradicts (0.5 m off)
+    is not, where restarting the graph at it would claim it."""
+    import itertools
+    from dataclasses import replace
+
+    from linereg import tracking
+    from linereg.graph import relative_pose
+    from linereg.registration import Registration
+
+    line_map, truth, frames = _scene(3)
+    relative = [relative_pose(a, b) for a, b in itertools.pairwise(truth)]
+    tracker = Tracker(line_map, CAMERA)
+    tracker.start_at(truth[0])
+    assert tracker.step(frames[0], np.eye(4)).success
+    monkeypatch.setattr(tracking, "refine_from", lambda *a, **k: Registration(success=False, reason="test"))
+    r = tracker.step(frames[1], relative[0])
+    assert r.success and tracker.event == "relocalized" and pose_errors(r.cam_from_world, truth[1])[1] < 1e-3
+    shift = np.eye(4)
+    shift[0, 3] = 0.5
+    found = tracking.relocalize
+    monkeypatch.setattr(
+        tracking,
+        "relocalize",
+        lambda *a, **k: replace(r := found(*a, **k), cam_from_world=shift @ r.cam_from_world),
+    )
+    r = tracker.step(frames[2], relative[1])
+    assert not r.success and tracker.event == "relocalized" and "sigma from the prediction" in r.reason
