@@ -107,7 +107,8 @@ def register_undistorted(
     with timer("vanishing"):
         vds = vanishing_directions(lines2d, camera, config.vanishing)
     # III-B, eq. (2): rotation candidates from VD <-> parallel-cluster pairings and signs (Algorithm 1); one
-    # matched direction leaves an angle about it, its angles scored against the other directions; a prior keeps those it admits
+    # matched direction leaves an angle about it, its angles scored against the other directions; a prior
+    # keeps those it admits
     with timer("rotation"):
         candidates = rotation_candidates(vds, view.clusters, config.rotation)
         if config.rotation.refit:

@@ -9,7 +9,8 @@ pose from the graph (``success=False``, reason "from neighbours ..."); a relocal
 prediction (a ``Prior``), or after ``global_after_frames`` lost frames without odometry in the ball the
 camera can have reached since its last fix (``max_speed_m_s`` and timestamps given), else globally. A
 relocalization near a prediction that odometry made joins the graph as a tracked fix does (odometry factor,
-innovation gate); any other restarts the graph at its pose. The graph is re-anchored every ``window`` frames (a prior with the newest pose's covariance), so memory stays flat.
+innovation gate); any other restarts the graph at its pose. The graph is re-anchored every ``window``
+frames (a prior with the newest pose's covariance), so memory stays flat.
 A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
 graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
 guess (a prediction without odometry, or after a lost frame) must also pass the global decision's rival
@@ -212,12 +213,7 @@ class Tracker:
             tracked = self._track(image, starts, radius, guessed=relative is None or self._lost > 0)
             if tracked.success:
                 self.event = "tracked"
-                doubt = self._doubt(tracked, predicted, step, cov)
-                added = self._add(image, tracked, step, cov)
-                doubt = self._confirm(lines, image, added) or doubt
-                if doubt:
-                    return replace(added, success=False, reason=doubt)
-                return self._claimed(added, stamp)
+                return self._join(lines, image, tracked, predicted, step, cov, stamp)
         self._lost += 1
         # a fix refused for its rivals is a frame the search near the prediction must decide, at once
         rivalled = tracked.reason.startswith(AMBIGUOUS)
@@ -225,14 +221,11 @@ class Tracker:
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
             ball = self._reach(stamp) if near is None else None
             found = self._relocalize(lines, near, radius, ball)
-            if found.success and near is not None and relative is not None and self._pose is not None:
+            if found.success and near is not None and relative is not None:
                 # odometry links this frame to the track: the fix joins its graph as a tracked one does
                 # (gated, weighed against the odometry) instead of restarting it at one frame's answer
                 self.event = "relocalized"
-                doubt = self._doubt(found, near, step, cov)
-                added = self._add(image, found, step, cov)
-                doubt = self._confirm(lines, image, added) or doubt
-                return replace(added, success=False, reason=doubt) if doubt else self._claimed(added, stamp)
+                return self._join(lines, image, found, near, step, cov, stamp)
             if found.success:
                 self.event = "initialized" if self._pose is None else "relocalized"
                 previous, consecutive = self._pose, self._lost == 1
@@ -244,6 +237,23 @@ class Tracker:
                 return self._claimed(found, stamp)
         # only odometry holds coasting frames together (a constant-velocity guess does not): a window
         return self._coast(image if relative is not None else None, tracked, predicted, step, cov)
+
+    def _join(
+        self,
+        lines: np.ndarray,
+        image: ImageLines,
+        fix: Registration,
+        predicted: np.ndarray,
+        step: np.ndarray | None,
+        cov: np.ndarray | None,
+        stamp: float | None,
+    ) -> Registration:
+        """Returns the Registration of a fix added to the track's graph with the motion from its
+        predecessor: claimed unless the innovation gate doubts it or its track is unconfirmed."""
+        doubt = self._doubt(fix, predicted, step, cov)
+        added = self._add(image, fix, step, cov)
+        doubt = self._confirm(lines, image, added) or doubt
+        return replace(added, success=False, reason=doubt) if doubt else self._claimed(added, stamp)
 
     def _claimed(self, result: Registration, stamp: float | None) -> Registration:
         """Returns a claimed fix, noting when and where it was (the reach of ``max_speed_m_s``)."""

@@ -3,13 +3,13 @@
 
 from __future__ import annotations
 
-import itertools
 from typing import Any
 
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
+from .neighbours import flat_lists
 
 
 def drop_near(
@@ -67,8 +67,7 @@ def _near_references(
     # a hair wider: rounding must not decide whether a pair is measured
     radius = (distance + 0.5 * step) * (1.0 + 1e-9) + 1e-9
     found = cKDTree(samples).query_ball_point(ends, radius, return_sorted=False)
-    sizes = np.fromiter(map(len, found), np.int64, len(found))
-    hits = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
+    sizes, hits = flat_lists(found)
     key = np.unique(np.repeat(np.arange(len(ends)), sizes) * len(r0) + ref[hits])
     return key // len(r0), key % len(r0)
 

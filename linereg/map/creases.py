@@ -6,12 +6,11 @@ over the stretch where both regions have points near it, reaching it from one si
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
+from .neighbours import flat_lists
 from .planes import Planes
 
 
@@ -109,8 +108,7 @@ def _near_lines(
             job_of.append(np.full(len(at), j))
         tree = cKDTree(points[member])
         found = tree.query_ball_point(np.concatenate(samples), np.concatenate(radii), return_sorted=False)
-        sizes = np.fromiter(map(len, found), np.int64, len(found))
-        hits = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(sizes.sum()))
+        sizes, hits = flat_lists(found)
         # distinct points of each line, in increasing order
         key = np.unique(np.repeat(np.concatenate(job_of), sizes) * len(member) + hits)
         bounds = np.searchsorted(key, np.arange(len(wanted) + 1) * len(member))

@@ -7,13 +7,12 @@ query, and the per-bin edge estimates and per-line fits are grouped sums over fl
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
 from ..threads import thread_count
+from .neighbours import flat_lists
 
 
 def refine_edges(
@@ -136,8 +135,7 @@ def _beside_pairs(besides: list[tuple[np.ndarray, int, int]], geometry: tuple[np
     found = tree.query_ball_point(
         np.c_[samples, owner[line] * lift], radius, return_sorted=False, workers=thread_count(8)
     )
-    size = np.fromiter(map(len, found), np.int64, len(found))
-    point = np.fromiter(itertools.chain.from_iterable(found), np.int64, int(size.sum()))
+    size, point = flat_lists(found)
     line, step = np.repeat(line, size), np.repeat(step, size)
     line, point = _own_stretch(line, step, point, beside[:, :2], a, d, count, band)
     rel = beside[point, :2] - a[line]
@@ -193,8 +191,8 @@ def _near_pairs(
         radius = float(np.hypot(band[lo], 0.5 * band[lo]))
         part = slice(start[lo], start[hi])
         found = tree.query_ball_point(samples[part], radius, return_sorted=False)
-        size = np.fromiter(map(len, found), np.int64, len(found))
-        points.append(np.fromiter(itertools.chain.from_iterable(found), np.int64, int(size.sum())) + base)
+        size, hits = flat_lists(found)
+        points.append(hits + base)
         lines.append(np.repeat(line[part], size))
         steps.append(np.repeat(step[part], size))
     point, line, step = np.concatenate(points), np.concatenate(lines), np.concatenate(steps)

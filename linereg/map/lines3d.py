@@ -231,21 +231,20 @@ def _beside_points(
     todo = [k for k, f in enumerate(frames) if len(f.uv)] if loose.n else []
     if not todo:
         return out
-    centres, reaches = np.zeros((len(todo), 3)), np.zeros(len(todo))
-    for i, k in enumerate(todo):
-        region, frame = regions[k], frames[k]
-        lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
-        centres[i] = region.centroid + 0.5 * (lo + hi) @ frame.basis
-        reaches[i] = float(np.sqrt(np.sum((0.5 * (hi - lo) + 2.0 * frame.cell) ** 2) + depth_m**2))
+    lo = np.array([frames[k].uv.min(axis=0) for k in todo])
+    hi = np.array([frames[k].uv.max(axis=0) for k in todo])
+    band = np.array([2.0 * frames[k].cell for k in todo])
+    centres = np.array(
+        [regions[k].centroid + 0.5 * (lo[i] + hi[i]) @ frames[k].basis for i, k in enumerate(todo)]
+    )
+    reaches = np.sqrt(np.sum((0.5 * (hi - lo) + band[:, None]) ** 2, axis=1) + depth_m**2)
     found = loose.query_ball_point(centres, reaches, return_sorted=False, workers=thread_count(8))
-    for k, index in zip(todo, found, strict=True):
+    for i, (k, index) in enumerate(zip(todo, found, strict=True)):
         region, frame = regions[k], frames[k]
-        band = 2.0 * frame.cell
-        lo, hi = frame.uv.min(axis=0), frame.uv.max(axis=0)
         rel = loose.data[index] - region.centroid
         depth = rel @ region.normal
         near = np.abs(depth) <= depth_m
         uv = rel[near] @ frame.basis.T
-        inside = ((uv >= lo - band) & (uv <= hi + band)).all(axis=1)
+        inside = ((uv >= lo[i] - band[i]) & (uv <= hi[i] + band[i])).all(axis=1)
         out[k] = np.c_[uv[inside], depth[near][inside]]
     return out

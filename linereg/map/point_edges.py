@@ -23,7 +23,6 @@ Measured on the shared RGB-D rooms (``linereg bench lines3d --real``, docs/measu
 
 from __future__ import annotations
 
-import itertools
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
@@ -32,6 +31,7 @@ from scipy.spatial import cKDTree
 
 from ..config import PointEdgesConfig
 from ..threads import thread_count
+from .neighbours import flat_lists
 
 __all__ = ["edge_points", "point_edges"]
 
@@ -188,9 +188,8 @@ def _flat(
     near = tree.query_ball_point(
         p0[seg] + mid[:, None] * d[seg], np.hypot(radius, 0.5 * step), workers=thread_count(8)
     )
-    sizes = np.fromiter((len(n) for n in near), np.int64, len(near))
+    sizes, idx = flat_lists(near)
     slice_of = np.repeat(np.arange(len(seg)), sizes)
-    idx = np.fromiter(itertools.chain.from_iterable(near), np.int64, int(sizes.sum()))
     owner = seg[slice_of]
     rel = points[idx] - p0[owner]
     along = np.einsum("ni,ni->n", rel, d[owner])
