@@ -167,11 +167,37 @@ def next_tolerance(residuals: np.ndarray, config: RegisterConfig) -> float:
     return float(np.clip(rc.outlier_sigmas * sigma, rc.min_outlier_px, config.score.distance_px))
 
 
+def fuse(
+    predicted: np.ndarray, predicted_cov: np.ndarray, fixed: np.ndarray, fix_cov: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns the (4, 4) cam_from_world and (6, 6) covariance of two independent estimates of one pose
+    combined (a Kalman update in gtsam's right-perturbation tangent of ``predicted``): what the tracker's
+    graph makes of an odometry prediction and a fix. Non-finite covariances count as zero."""
+    P, R = _finite(predicted_cov), _finite(fix_cov)
+    gain = P @ np.linalg.pinv(P + R)
+    xi = gtsam.Pose3.Logmap(to_pose3(predicted).between(to_pose3(fixed)))
+    pose = to_pose3(predicted).compose(gtsam.Pose3.Expmap(gain @ xi))
+    covariance = (np.eye(6) - gain) @ P
+    return from_pose3(pose), 0.5 * (covariance + covariance.T)
+
+
 def chi2_quantile(probability: float, dof: int) -> float:
     """Returns the chi-square quantile (scipy)."""
     from scipy.stats import chi2
 
     return float(chi2.ppf(probability, dof))
+
+
+def carry(covariance: np.ndarray | None, step: np.ndarray, step_cov: np.ndarray) -> np.ndarray:
+    """Returns the (6, 6) covariance of a pose moved by ``step`` (cam_prev_from_cam_this) from a pose of
+    ``covariance`` (gtsam's right perturbation, camera frame, rotation first), plus the step's ``step_cov``.
+    A non-finite or missing covariance counts as zero (an unknown pose: what is known is used)."""
+    ad = gtsam.Pose3(step).inverse().AdjointMap()
+    return ad @ _finite(covariance) @ ad.T + step_cov
+
+
+def _finite(c: np.ndarray | None) -> np.ndarray:
+    return c if c is not None and c.shape == (6, 6) and np.isfinite(c).all() else np.zeros((6, 6))
 
 
 def innovation_distance(
@@ -189,11 +215,6 @@ def innovation_distance(
     camera frame, rotation first) plus ``step_cov``; the fix's own covariance is added (independent
     measurements). Non-finite covariances count as zero (an unknown previous pose or fix: the gate uses
     what is known)."""
-
-    def finite(c: np.ndarray | None) -> np.ndarray:
-        return c if c is not None and c.shape == (6, 6) and np.isfinite(c).all() else np.zeros((6, 6))
-
-    ad = gtsam.Pose3(step).inverse().AdjointMap()
-    covariance = ad @ finite(previous_covariance) @ ad.T + step_cov + finite(fix_covariance)
+    covariance = carry(previous_covariance, step, step_cov) + _finite(fix_covariance)
     xi = gtsam.Pose3.Logmap(to_pose3(predicted).between(to_pose3(fixed)))
     return float(xi @ np.linalg.solve(covariance, xi))

@@ -3,7 +3,8 @@
 1. Each frame alone (``alone``): refined from its prediction (odometry from the last fix, else constant
    velocity), a fix only if no distinct pose near it scores as well (``rival_test``); failing that,
    registered near the prediction (a ``Prior``); globally only for the first frame and frames after a
-   loss without odometry.
+   loss without odometry. With odometry a fix must also lie near the odometry's prediction (``gated``,
+   the tracker's innovation gate); a gated fix is not claimed but still starts the graph at its pose.
 2. One graph over all frames: a line-projection factor per frame on its matched fragments (the
    refinement's vectorised factor, Huber kernel in pixels, noise = the frame's own residual level), a
    ``BetweenFactorPose3`` per odometry step with its covariance, and, only when asked
@@ -31,11 +32,15 @@ from .errors import InvalidInputError
 from .geometry import camera_center, rotation_error_deg
 from .graph import (
     LineFit,
+    carry,
     check_covariance,
     check_relative_pose,
+    chi2_quantile,
     frame_key,
     frame_lines,
     from_pose3,
+    fuse,
+    innovation_distance,
     line_fit,
     next_tolerance,
     noise_px,
@@ -57,6 +62,7 @@ log = logging.getLogger(__name__)
 
 FROM_NEIGHBOURS = "from neighbours"  # the reason of a frame posed by the graph, not by its own lines
 AMBIGUOUS = "tracking: ambiguous"  # the reason of a fix refused for a rival (``rival_test``)
+GATED = "tracking: off the prediction"  # the reason of a fix refused by the innovation gate (``gated``)
 
 
 @dataclass(frozen=True)
@@ -78,6 +84,11 @@ class SequenceConfig:
     relocalize_radius_m: float = 1.0
     max_relocalize_radius_m: float = 5.0
     relocalize_sigma_rot_deg: float = 5.0
+    # innovation gate: with odometry, a fix is claimed only if its Mahalanobis distance to the predicted
+    # pose (covariance: the last pose's carried along the odometry, plus the fix's own) is within this
+    # chi-square(6) quantile (0: no gate). A wrong basin (a window period off, a pose orbited along a
+    # facade) lies many sigmas from the prediction.
+    gate_probability: float = 0.999
     # a frame after one without a fix is searched for near its prediction (relocalized): the first
     # relocalize_every frames of a loss each, then every n-th (each costs 0.1 s to seconds)
     relocalize_every: int = 5
@@ -275,10 +286,14 @@ def frames_alone(
     prior: Prior | None = None,
 ) -> list[Registration]:
     """Returns each frame's own Registration: tracked from its prediction, else relocalized near it, else
-    global (step 1 of the module docstring)."""
+    global (step 1 of the module docstring). With odometry, a fix lying farther from the odometry's
+    prediction than ``gate_probability`` allows (the tracker's innovation gate, on the last fix's covariance
+    carried along the odometry) is not claimed: ``success=False``, its pose kept (``gated``)."""
     out: list[Registration] = []
-    fix: tuple[int, np.ndarray] | None = None  # the last frame fixed alone
-    drift = 0.0  # 3 sigma of the odometry position since the last fix
+    # where predictions start: the last frame fixed alone, or gated (its fix and its prediction combined)
+    fix: tuple[int, np.ndarray] | None = None
+    drift = 0.0  # 3 sigma of the odometry position since then
+    carried: np.ndarray | None = None  # its covariance, carried along the odometry to the previous frame
     for k, image in enumerate(images):
         predicted, radius = _prediction(k, out, fix, relative, drift, config)
         if k == 0 and prior is not None and prior.cam_from_world is not None:
@@ -287,10 +302,10 @@ def frames_alone(
         # a refinement finds the nearest basin, right only while the prediction is (the last frame's fix
         # plus one step); after frames without a fix the frame is searched for near its prediction
         # (relocalize: the best-scoring pose there, against its rivals)
-        follows = k == 0 or (fix is not None and fix[0] == k - 1)
+        follows = k == 0 or (fix is not None and fix[0] == k - 1)  # a fix, or a gated fix (``gated``)
         if follows and predicted is not None and len(lines[k]) >= config.register.min_lines2d:
             result = refine_from(image, line_map, camera, predicted, radius, config)
-            if result.success:  # no innovation gate here (the tracker's): its rivals are the evidence
+            if result.success:
                 result = rival_test(image, line_map, camera, result, config)
         lost = k - (fix[0] if fix else -1) - 1  # frames since the last fix
         if not result.success and (lost < config.relocalize_every or lost % config.relocalize_every == 0):
@@ -302,12 +317,51 @@ def frames_alone(
                 if reloc.success or predicted is None
                 else replace(result, timings=timings | result.timings)
             )
+        base, covariance = result.cam_from_world, result.covariance
+        if result.success and predicted is not None and carried is not None and relative is not None:
+            assert covariances is not None
+            result, base, covariance = gated(
+                result, predicted, carried, relative[k - 1], covariances[k - 1], config
+            )
         out.append(result)
-        if result.success:
-            fix, drift = (k, result.cam_from_world), 0.0
-        elif relative is not None and covariances is not None and k < len(relative):
-            drift += 3.0 * float(np.sqrt(np.trace(covariances[k][3:, 3:])))
+        if result.success or result.reason.startswith(GATED):  # the next frame's prediction starts here
+            fix, drift, carried = (k, base), 0.0, covariance
+        elif relative is not None and covariances is not None:
+            if k < len(relative):
+                drift += 3.0 * float(np.sqrt(np.trace(covariances[k][3:, 3:])))
+            if carried is not None:  # the last fix's covariance carried on to this frame
+                carried = carry(carried, relative[k - 1], covariances[k - 1])
     return out
+
+
+def gated(
+    fix: Registration,
+    predicted: np.ndarray,
+    previous_covariance: np.ndarray,
+    step: np.ndarray,
+    step_covariance: np.ndarray,
+    config: SequenceConfig,
+) -> tuple[Registration, np.ndarray, np.ndarray]:
+    """Returns (the fix, or the fix not claimed; the (4, 4) pose and (6, 6) covariance the next frame's
+    prediction starts from). The fix is not claimed (``success=False``, reason ``GATED``) when its pose lies
+    farther from the odometry's ``predicted`` (4, 4) than ``gate_probability`` of the predicted distribution
+    allows (``graph.innovation_distance``: the previous frame's covariance carried through ``step`` with its
+    covariance, plus the fix's own); the next frame then starts from the fix and the prediction combined
+    (``graph.fuse``, as the tracker's graph combines them), so a slip of the odometry strands nothing."""
+    d2 = innovation_distance(
+        predicted, fix.cam_from_world, previous_covariance, step, step_covariance, fix.covariance
+    )
+    limit = chi2_quantile(config.gate_probability, 6) if config.gate_probability else np.inf
+    if d2 <= limit:
+        return fix, fix.cam_from_world, fix.covariance
+    reason = (
+        f"{GATED}: its fix is {np.sqrt(d2):.1f} sigma from the odometry's prediction "
+        f"(gate {np.sqrt(limit):.1f} sigma)"
+    )
+    base, covariance = fuse(
+        predicted, carry(previous_covariance, step, step_covariance), fix.cam_from_world, fix.covariance
+    )
+    return replace(fix, success=False, reason=reason), base, covariance
 
 
 def _prediction(
@@ -403,8 +457,14 @@ def smooth(
     ]
 
 
+def _fitted(alone: Registration) -> bool:
+    """Returns True for a frame whose own lines fixed it: claimed, or gated (the graph weighs a fix against
+    the odometry, as the tracker's does)."""
+    return alone.success or alone.reason.startswith(GATED)
+
+
 def _start_tolerance(alone: Registration, rc: RegisterConfig) -> float:
-    if not alone.success or not np.isfinite(alone.rms_px):
+    if not _fitted(alone) or not np.isfinite(alone.rms_px):
         return rc.score.distance_px
     rf = rc.refine
     return float(np.clip(rf.outlier_sigmas * alone.rms_px, rf.min_outlier_px, rc.score.distance_px))
@@ -426,9 +486,9 @@ def _links(
 
 
 def _initial(alone: list[Registration], links: list[_Link]) -> dict[int, np.ndarray]:
-    """Returns the initial pose of every frame the graph can reach: its own fix, else chained along the
-    links from the nearest fix before it, else back from the nearest one after it."""
-    poses = {k: r.cam_from_world for k, r in enumerate(alone) if r.success}
+    """Returns the initial pose of every frame the graph can reach: its own fix (claimed or gated), else
+    chained along the links from the nearest fix before it, else back from the nearest one after it."""
+    poses = {k: r.cam_from_world for k, r in enumerate(alone) if _fitted(r)}
     step = {k: T for k, T, _ in links}
     for k in range(1, len(alone)):
         if k not in poses and k - 1 in poses and k - 1 in step:

@@ -11,8 +11,8 @@ camera can have reached since its last fix (``max_speed_m_s`` and timestamps giv
 relocalization near a prediction that odometry made joins the graph as a tracked fix does (odometry factor,
 innovation gate); any other restarts the graph at its pose. The graph is re-anchored every ``window``
 frames (a prior with the newest pose's covariance), so memory stays flat.
-A fix many sigmas from its prediction (the chi-square innovation gate, ``gate_probability``) enters the
-graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
+A fix many sigmas from its prediction (the chi-square innovation gate, ``SequenceConfig.gate_probability``)
+enters the graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
 guess (a prediction without odometry, or after a lost frame) must also pass the global decision's rival
 tests (``sequence.rival_test``: the fix turned and orbited); one refused for a rival is relocalized near
 its prediction at once. A global relocalization (no prior) starts a track that is posed but not claimed
@@ -92,11 +92,6 @@ class TrackingConfig:
     window: int = 50  # frames in the iSAM2 graph before it is re-anchored at the newest pose
     # a refined frame explaining less than this share of what the last 5 fixes explained is not a fix
     min_explained_ratio: float = 0.6
-    # innovation gate: a refined frame is claimed (success) only if its Mahalanobis distance to the
-    # predicted pose (covariance: the last pose's marginal carried through the motion step, plus the
-    # motion's and the fix's own) is within this chi-square(6) quantile (0: no gate). A wrong basin (a
-    # window period off) lies many sigmas from the prediction; a doubted fix still enters the graph.
-    gate_probability: float = 0.999
     # a global relocalization (no prior: the first frame without ``start_at``, or after
     # ``global_after_frames`` lost frames without odometry) decides on one frame, and on repeated structure
     # (the courtyard's 180-degree twin, a facade one bay over) a wrong pose can win it clearly. Its track is
@@ -345,7 +340,7 @@ class Tracker:
         ``gate_probability`` of the predicted distribution allows (the chi-square innovation gate). The fix
         still enters the graph (refusing it outright strands the tracker when the covariances are
         optimistic); the frame is reported with the graph's pose, ``success=False``."""
-        p = self.config.gate_probability
+        p = self.config.sequence.gate_probability
         if not p or step is None or cov is None:
             return ""
         d2 = innovation_distance(
@@ -497,7 +492,8 @@ class Tracker:
         sigma = float(np.sqrt(np.max(np.diag(self._covariance())[:3])))
         if not window or not np.isfinite(sigma):
             return ""
-        gate = math.sqrt(chi2_quantile(cfg.gate_probability, 3)) if cfg.gate_probability else 3.0
+        gate_p = cfg.sequence.gate_probability
+        gate = math.sqrt(chi2_quantile(gate_p, 3)) if gate_p else 3.0
         pick = np.unique(np.linspace(0, len(window) - 1, cfg.align_frames).round().astype(int))
         visible = visible_mask(self.line_map, camera_center(window[-1][1]), cfg.sequence.relocalize_radius_m)
         found = align_window(

@@ -4,6 +4,7 @@ trajectory errors as evo computes them."""
 from __future__ import annotations
 
 import itertools
+from dataclasses import replace
 
 import gtsam
 import numpy as np
@@ -16,7 +17,7 @@ from linereg.graph import from_pose3, relative_pose, to_pose3
 from linereg.map.linemap import LineMap
 from linereg.priors import Prior
 from linereg.score import image_lines
-from linereg.sequence import FROM_NEIGHBOURS, SequenceConfig, frames_alone, localize_sequence
+from linereg.sequence import FROM_NEIGHBOURS, GATED, SequenceConfig, frames_alone, localize_sequence
 from linereg.sim.synthetic import look_at, project_visible
 from linereg.tracking import Tracker, TrackingConfig, innovation_distance
 
@@ -110,17 +111,18 @@ def test_a_frame_after_a_loss_is_searched_for_not_refined_from_its_prediction(sc
     # after a frame without a fix the prediction has drifted (here the odometry over the lost frame is off
     # by 0.3 m): the next frame is relocalized near it (the best-scoring pose there, against its rivals),
     # not refined into whatever basin the prediction lies in; the frame after a fix is refined (tracked)
+    # (its covariance says so: 0.2 m; one claiming 1 mm would have the relocalized fix gated, not claimed)
     line_map, truth, frames = scene
     relative, _ = _odometry(truth)
     relative[1] = relative[1].copy()
     relative[1][:3, 3] += [0.3, 0.0, 0.0]
+    covariances = [np.eye(6) * 1e-6 for _ in relative]
+    covariances[1] = np.eye(6) * 0.2**2
     dropped = [*frames[:2], BLANK, *frames[3:]]
     config = SequenceConfig()
-    results = localize_sequence(
-        dropped, line_map, CAMERA, relative, config=config, prior=Prior(cam_from_world=truth[0], radius_m=0.5)
-    )
+    first = Prior(cam_from_world=truth[0], radius_m=0.5)
+    results = localize_sequence(dropped, line_map, CAMERA, relative, covariances, config, first)
     images = [image_lines(f, CAMERA, config.register.score) for f in dropped]
-    covariances = [np.eye(6) * 1e-6 for _ in relative]
     alone = frames_alone(
         dropped,
         images,
@@ -129,7 +131,7 @@ def test_a_frame_after_a_loss_is_searched_for_not_refined_from_its_prediction(sc
         relative,
         covariances,
         config,
-        Prior(cam_from_world=truth[0], radius_m=0.5),
+        first,
     )
     assert "relocalize" in alone[3].timings and "track" not in alone[3].timings
     assert "track" in alone[4].timings
@@ -137,6 +139,30 @@ def test_a_frame_after_a_loss_is_searched_for_not_refined_from_its_prediction(sc
         assert alone[k].success and results[k].success, (k, alone[k].reason)
         rot, pos, _ = pose_errors(results[k].cam_from_world, truth[k])
         assert pos < 0.01 and rot < 0.2
+
+
+def test_a_fix_far_from_the_odometrys_prediction_is_not_claimed_alone(scene):
+    line_map, truth, frames = scene
+    relative, covariances = _odometry(truth)
+    relative[1] = relative[1].copy()
+    relative[1][:3, 3] += [0.0, 0.0, 0.1]  # odometry 10 cm off on one step, its covariance says 1 mm
+    config = SequenceConfig()
+    images = [image_lines(f, CAMERA, config.register.score) for f in frames]
+    first = Prior(cam_from_world=truth[0], radius_m=0.5)
+    for probability in (config.gate_probability, 0.0):
+        gate = replace(config, gate_probability=probability)
+        alone = frames_alone(frames, images, line_map, CAMERA, relative, covariances, gate, first)
+        assert alone[1].success and alone[2].success == (probability == 0.0)
+        if probability:
+            assert (
+                alone[2].reason.startswith(GATED)
+                and "sigma from the odometry's prediction" in alone[2].reason
+            )
+        # the gated fix and its prediction combined start the next frame: tracking goes on, claimed
+        for k in (2, 3, 4, 5):
+            rot, pos, _ = pose_errors(alone[k].cam_from_world, truth[k])
+            assert pos < 1e-3 and rot < 0.05, (k, alone[k].reason)
+        assert all(alone[k].success for k in (3, 4, 5)), [r.reason for r in alone]
 
 
 def test_sequence_bad_input_names_the_frame(scene):
@@ -189,8 +215,10 @@ def test_tracker_does_not_claim_a_fix_many_sigmas_from_its_prediction(scene):
     relative, _ = _odometry(truth)
     lying = relative[0].copy()
     lying[:3, 3] += [0.0, 0.0, 0.1]  # odometry 10 cm off, its covariance says ~1 cm: the fix disagrees
-    for probability, claimed in ((TrackingConfig().gate_probability, False), (0.0, True)):
-        tracker = Tracker(line_map, CAMERA, TrackingConfig(gate_probability=probability))
+    for probability, claimed in ((SequenceConfig().gate_probability, False), (0.0, True)):
+        config = TrackingConfig()
+        config = replace(config, sequence=replace(config.sequence, gate_probability=probability))
+        tracker = Tracker(line_map, CAMERA, config)
         tracker.start_at(truth[0], sigma_rot_deg=0.1, sigma_pos_m=0.005)
         assert tracker.step(frames[0]).success
         r = tracker.step(frames[1], lying)
