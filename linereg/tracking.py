@@ -12,11 +12,11 @@ relocalization near a prediction that odometry made joins the graph as a tracked
 innovation gate); any other restarts the graph at its pose. The graph is re-anchored every ``window``
 frames (a prior with the newest pose's covariance), so memory stays flat.
 A fix many sigmas from its prediction (the chi-square innovation gate, ``SequenceConfig.gate_probability``)
-enters the graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix refined from a
-guess (a prediction without odometry, or after a lost frame) must also pass the global decision's rival
-tests (``sequence.rival_test``: the fix turned and orbited); one refused for a rival is relocalized near
-its prediction at once. A global relocalization (no prior) starts a track that is posed but not claimed
-("unconfirmed ...") until an independent global relocalization of a later frame lands on it
+enters the graph but is not claimed: ``success=False``, reason "from neighbours and its lines ...". A fix
+refined from a guess (a prediction without odometry, or after a lost frame) must also pass the global
+decision's rival tests (``sequence.rival_test``: the fix turned and orbited); one refused for a rival is
+relocalized near its prediction at once. A global relocalization (no prior) starts a track that is posed
+but not claimed ("unconfirmed ...") until an independent global relocalization of a later frame lands on it
 (``confirm_global``): one frame's global answer can be a repeated structure's twin. Frames coasting on
 odometry gather in a window; once odometry no longer holds the window rigid to within the score's resolution,
 the window is turned to where its frames' summed score is best (``align.align_window``) and that rotation
