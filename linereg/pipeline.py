@@ -308,9 +308,12 @@ def fine_value(
 ) -> float:
     """Returns a pose's occlusion-aware score at ``sharp_fraction`` of the score's distance (the image's
     candidate pairs, listed for the full distance, hold those of a smaller one)."""
-    sc = config.score
-    fine = replace(sc, distance_px=config.decide.sharp_fraction * sc.distance_px)
-    return view_score(view, image, camera, cam_from_world, fine)[0].value
+    return view_score(view, image, camera, cam_from_world, fine_config(config))[0].value
+
+
+def fine_config(config: RegisterConfig) -> ScoreConfig:
+    """Returns the score's configuration at ``sharp_fraction`` of its distance (the sharpness test's)."""
+    return replace(config.score, distance_px=config.decide.sharp_fraction * config.score.distance_px)
 
 
 def map_floor(accuracy_m: float, depth_m: float) -> np.ndarray:
@@ -411,10 +414,10 @@ def with_copies(
     regions: Sequence[tuple[np.ndarray, np.ndarray]],
 ) -> tuple[list[tuple[Score, np.ndarray]], list[Found]]:
     """Returns (the ``view_score`` of each refined pose, found) with the copies of the best refined pose
-    (by that score) and its orbits among the found poses (``copy_rivals``): rivals only, never the answer (a copy taken
-    as the best when it scored more claimed a demo photo's upside-down twin, the truth unsolved); copies
-    under the ``rotations`` searched with camera centres in the ``regions`` searched (what a prior
-    admits)."""
+    (by that score) and its orbits among the found poses (``copy_rivals``): rivals only, never the answer
+    (a copy taken as the best when it scored more claimed a demo photo's upside-down twin, the truth
+    unsolved); copies under the ``rotations`` searched with camera centres in the ``regions`` searched
+    (what a prior admits)."""
     seen = [view_score(view, image, camera, r.cam_from_world, config.score) for r in refined]
     k = int(np.argmax([v.value for v, _ in seen]))
     copies = copy_rivals(

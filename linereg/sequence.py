@@ -52,7 +52,14 @@ from .graph import (
 )
 from .localization import localize_segments
 from .map.linemap import LineMap
-from .pipeline import differs, orbit_rivals, sharp_dismisses, turned_rival, with_map_floor
+from .pipeline import (
+    differs,
+    fine_config,
+    orbit_rivals,
+    sharp_dismisses,
+    turned_rival,
+    with_map_floor,
+)
 from .priors import Prior
 from .refine import refine_pose
 from .registration import Registration
@@ -224,7 +231,7 @@ def rival_test(
     turned = turned_rival(T0, image, segments, camera, rc, visible)
     orbits = orbit_rivals(T0, fix.matches, image, segments, camera, rc, visible)
     rivals = sorted([turned, *((T, s.value) for T, s in orbits)], key=lambda r: -r[1])
-    fine = replace(rc.score, distance_px=dc.sharp_fraction * rc.score.distance_px)
+    fine = fine_config(rc)
 
     def fine_value(T: np.ndarray) -> float:
         return score_pose(image, segments, camera, T, fine, visible).value

@@ -6,12 +6,27 @@ over the stretch where both regions have points near it, reaching it from one si
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
 from .neighbours import flat_lists
 from .planes import Planes
+
+
+class _Crease(NamedTuple):
+    """The line where regions a and b meet: origin + t direction for t in [enter, leave] (inside both
+    regions' boxes), searched with the larger region's raster ``cell``."""
+
+    a: int
+    b: int
+    origin: np.ndarray
+    direction: np.ndarray
+    enter: float
+    leave: float
+    cell: float
 
 
 def crease_segments(
@@ -45,14 +60,15 @@ def crease_segments(
     hi = np.minimum(box_hi[a], box_hi[b]) + 3 * cell[:, None]
     enter, leave, inside = _overlap(lo, hi, origin, directions)
     lines = [
-        (a[k], b[k], origin[k], directions[k], (enter[k], leave[k]), cell[k]) for k in np.flatnonzero(inside)
+        _Crease(a[k], b[k], origin[k], directions[k], enter[k], leave[k], cell[k])
+        for k in np.flatnonzero(inside)
     ]
     near = _near_lines(points, members, lines)
-    for k, (_, _, at, direction, _, size) in enumerate(lines):
+    for k, line in enumerate(lines):
         (ta, perp_a), (tb, perp_b) = near[k, 0], near[k, 1]
-        for t0, t1 in _common_runs(ta, tb, size, config):
+        for t0, t1 in _common_runs(ta, tb, line.cell, config):
             if _one_sided(ta, perp_a, t0, t1, share) and _one_sided(tb, perp_b, t0, t1, share):
-                out.append(np.r_[at + t0 * direction, at + t1 * direction])
+                out.append(np.r_[line.origin + t0 * line.direction, line.origin + t1 * line.direction])
     return np.array(out).reshape(-1, 6)
 
 
@@ -82,27 +98,26 @@ def _overlap(
 
 
 def _near_lines(
-    points: np.ndarray, members: list[np.ndarray], lines: list[tuple]
+    points: np.ndarray, members: list[np.ndarray], lines: list[_Crease]
 ) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
     """Returns {(line k, side 0 / 1): ((n,) line parameters, (n, 3) offsets from the line)} of the points of
-    region a (side 0) and b (side 1) of each of the ``lines`` (a, b, origin, direction, (t0, t1) span, cell)
-    within 3 cells of the line's span.
+    region a (side 0) and b (side 1) of each of the ``lines`` within 3 cells of the line's span.
 
     A region's lines are looked up together, one KD-tree query of all their samples (a room's regions meet
     in thousands of pairs: one query each cost more than the search).
     """
     jobs: dict[int, list[tuple[int, int]]] = {}
     for k, line in enumerate(lines):
-        for side in (0, 1):
-            jobs.setdefault(int(line[side]), []).append((k, side))
+        for side, region in enumerate((line.a, line.b)):
+            jobs.setdefault(int(region), []).append((k, side))
     out = {}
     for region, wanted in jobs.items():
         member = members[region]
         samples, radii, job_of = [], [], []
         for j, (k, _) in enumerate(wanted):
-            _, _, origin, direction, span, cell = lines[k]
-            radius = 3 * cell
-            at = origin + np.outer(np.arange(span[0], span[1] + radius, radius), direction)
+            line = lines[k]
+            radius = 3 * line.cell
+            at = line.origin + np.outer(np.arange(line.enter, line.leave + radius, radius), line.direction)
             samples.append(at)
             radii.append(np.full(len(at), 1.5 * radius))
             job_of.append(np.full(len(at), j))
@@ -113,9 +128,9 @@ def _near_lines(
         key = np.unique(np.repeat(np.concatenate(job_of), sizes) * len(member) + hits)
         bounds = np.searchsorted(key, np.arange(len(wanted) + 1) * len(member))
         for j, (k, side) in enumerate(wanted):
-            _, _, origin, direction, _, cell = lines[k]
+            line = lines[k]
             idx = key[bounds[j] : bounds[j + 1]] - j * len(member)
-            out[k, side] = _near_line(points[member[idx]], origin, direction, 3 * cell)
+            out[k, side] = _near_line(points[member[idx]], line.origin, line.direction, 3 * line.cell)
     return out
 
 

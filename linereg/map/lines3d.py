@@ -153,6 +153,11 @@ class Frame(NamedTuple):
     image: np.ndarray
     lo: np.ndarray
 
+    @property
+    def band(self) -> float:
+        """The width (m) within which points belong to a boundary line: two raster cells."""
+        return 2.0 * self.cell
+
 
 def candidates(points: list[np.ndarray], regions: list[Region], config: Lines3DConfig) -> list[Frame]:
     """Returns each region of (n, 3) local points in its plane with the straight runs of its raster's
@@ -207,7 +212,7 @@ def contour_segments(
         raws.append(np.concatenate([frame.lines, box]))
         lines.append(np.concatenate([snapped, box]))
         fixed.append(np.r_[known, np.ones(len(box), dtype=bool)])
-    bands = [2.0 * frame.cell for frame in frames]
+    bands = [frame.band for frame in frames]
     refined = refine_regions([f.uv for f in frames], lines, bands, config, beside, fixed)
     out = []
     for frame, region, raw, (moved, kept) in zip(frames, regions, raws, refined, strict=True):
@@ -233,7 +238,7 @@ def _beside_points(
         return out
     lo = np.array([frames[k].uv.min(axis=0) for k in todo])
     hi = np.array([frames[k].uv.max(axis=0) for k in todo])
-    band = np.array([2.0 * frames[k].cell for k in todo])
+    band = np.array([frames[k].band for k in todo])
     centres = np.array(
         [regions[k].centroid + 0.5 * (lo[i] + hi[i]) @ frames[k].basis for i, k in enumerate(todo)]
     )
