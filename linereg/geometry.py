@@ -114,10 +114,13 @@ def interpretation_normals(lines2d: np.ndarray, camera: Camera) -> np.ndarray:
 
 def line_coefficients(lines2d: np.ndarray) -> np.ndarray:
     """Returns (N, 3) ``(A, B, C)`` of each segment's infinite line ``A x + B y + C = 0``, ``A^2 + B^2 = 1``."""
-    p1 = np.c_[lines2d[:, 0:2], np.ones(len(lines2d))]
-    p2 = np.c_[lines2d[:, 2:4], np.ones(len(lines2d))]
-    H = np.cross(p1, p2)
-    return H / np.linalg.norm(H[:, :2], axis=1, keepdims=True)
+    x1, y1, x2, y2 = lines2d[:, 0], lines2d[:, 1], lines2d[:, 2], lines2d[:, 3]
+    H = np.empty((len(lines2d), 3))  # (x1, y1, 1) x (x2, y2, 1)
+    np.subtract(y1, y2, out=H[:, 0])
+    np.subtract(x2, x1, out=H[:, 1])
+    np.subtract(x1 * y2, y1 * x2, out=H[:, 2])
+    H /= np.sqrt(H[:, 0] * H[:, 0] + H[:, 1] * H[:, 1])[:, None]
+    return H
 
 
 def project_points(camera: Camera, points_cam: np.ndarray) -> np.ndarray:

@@ -27,6 +27,7 @@ import numpy as np
 from .camera import Camera
 from .config import ScoreConfig
 from .geometry import segment_angles, segment_lengths
+from .threads import run_parallel, thread_count
 
 CELLS_PER_RADIUS = 8  # the empty-area raster: cells of radius / 8, fine next to the radius, cheap
 GRID_PX = 24.0  # cells of the candidate grid of the pair test: speed only, the same pairs for any size
@@ -99,12 +100,7 @@ class Score:
         segment and each map segment in at most one (a greedy assignment). A loose tolerance lets a map
         line cover several image lines of clutter and the truth's: pose fits on all of them average the
         pulls, on these the longest agreement wins (docs/measurements.md: the local solve's basin)."""
-        if len(self.pairs) == 0:
-            return np.zeros((0, 2), dtype=np.int64)
-        covered = self.cover[:, 1] - self.cover[:, 0]
-        order = np.argsort(-covered, kind="stable")
-        pairs = np.ascontiguousarray(self.pairs[order], dtype=np.int64)
-        return pairs[_greedy(pairs, int(pairs[:, 0].max()) + 1, int(pairs[:, 1].max()) + 1)]
+        return greedy_pairs(self.pairs, self.cover)
 
     def matches(self, min_cover: float) -> np.ndarray:
         """Returns (K, 2) int64 ``(i2d, j3d)``: for each image segment the map segment covering most of it,
@@ -139,6 +135,42 @@ def score_projected(
 ) -> Score:
     """Returns the Score of (K, 4) projected map segments already clipped to the image; ``index`` (K,) gives
     each one's row in the map (``Score.pairs`` use it)."""
+    pairs, cover = _pairs_of(image, projected, index, config)
+    explained = _union_lengths(np.ascontiguousarray(pairs[:, 0]), cover, len(image.segments))
+    unexplained = _length_in_cells(projected, image.empty, image.cell_px)
+    value = float(explained.sum()) - config.unexplained_weight * unexplained
+    return Score(value, explained, unexplained, pairs, cover)
+
+
+def one_to_one_pairs(
+    image: ImageLines,
+    lines3d: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    config: ScoreConfig,
+    visible: np.ndarray | None = None,
+) -> np.ndarray:
+    """Returns ``score_pose(...).one_to_one()`` without the score's sums (a local solve's rounds use only
+    the pairs)."""
+    projected, index = project_clipped(lines3d, camera, cam_from_world, config.min_depth_m, visible)
+    return greedy_pairs(*_pairs_of(image, projected, index, config))
+
+
+def greedy_pairs(pairs: np.ndarray, cover: np.ndarray) -> np.ndarray:
+    """Returns (K, 2) int64 of (P, 2) covering pairs (their (P, 2) covered stretches) taken longest cover
+    first, each image segment and each map segment in at most one (``Score.one_to_one``)."""
+    if len(pairs) == 0:
+        return np.zeros((0, 2), dtype=np.int64)
+    order = np.argsort(-(cover[:, 1] - cover[:, 0]), kind="stable")
+    pairs = np.ascontiguousarray(pairs[order], dtype=np.int64)
+    return pairs[_greedy(pairs, int(pairs[:, 0].max()) + 1, int(pairs[:, 1].max()) + 1)]
+
+
+def _pairs_of(
+    image: ImageLines, projected: np.ndarray, index: np.ndarray, config: ScoreConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((P, 2) int64 covering pairs (i2d, map row), (P, 2) covered stretches) of (K, 4) projected
+    map segments whose map rows ``index`` gives."""
     i, j, cover = _covering_pairs(
         image.segments,
         image.angles,
@@ -151,11 +183,8 @@ def score_projected(
         config.distance_px,
         np.radians(config.angle_deg),
     )
-    explained = _union_lengths(i, cover, len(image.segments))
-    unexplained = _length_in_cells(projected, image.empty, image.cell_px)
-    value = float(explained.sum()) - config.unexplained_weight * unexplained
     pairs = np.stack([i, index[j]], axis=1) if len(i) else np.zeros((0, 2), dtype=np.int64)
-    return Score(value, explained, unexplained, pairs, cover)
+    return pairs, cover
 
 
 def shifted_values(
@@ -163,14 +192,24 @@ def shifted_values(
 ) -> np.ndarray:
     """Returns (S,) the score values of (K, 4) projected map segments moved by each of (S, 2) pixel
     ``shifts``: ``score_projected(image, projected + (dx, dy, dx, dy), ...).value`` for every shift, in one
-    compiled loop (the decision compares a pose with these displaced copies of itself, ``pipeline.decide``)."""
+    compiled loop (the decision compares a pose with these displaced copies of itself, ``pipeline.decide``),
+    the shifts shared among threads (each value depends on its shift alone)."""
     projected = np.ascontiguousarray(projected, dtype=np.float64).reshape(-1, 4)
     shifts = np.ascontiguousarray(shifts, dtype=np.float64).reshape(-1, 2)
-    return _shifted_values(
-        image.segments, image.angles, image.lengths, image.grid_ptr, image.grid_items, image.grid_w,
-        image.grid_px, image.empty, image.cell_px, projected, shifts, config.distance_px,
-        np.radians(config.angle_deg), config.unexplained_weight,
-    )  # fmt: skip
+    out = np.empty(len(shifts))
+    workers = thread_count(2 if len(shifts) * len(projected) > 10_000 else 1)
+    bounds = np.linspace(0, len(shifts), workers + 1).astype(np.int64)
+
+    def run(worker: int) -> None:
+        part = slice(bounds[worker], bounds[worker + 1])
+        out[part] = _shifted_values(
+            image.segments, image.angles, image.lengths, image.grid_ptr, image.grid_items, image.grid_w,
+            image.grid_px, image.empty, image.cell_px, projected, shifts[part], config.distance_px,
+            np.radians(config.angle_deg), config.unexplained_weight,
+        )  # fmt: skip
+
+    run_parallel(run, workers)
+    return out
 
 
 def project_segments(

@@ -27,7 +27,7 @@ from .config import ScoreConfig, SearchConfig
 from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_error_deg
 from .line_factor import LineProjection
 from .points import Points
-from .score import ImageLines, Score, grow, score_pose
+from .score import ImageLines, Score, grow, one_to_one_pairs, score_pose
 from .threads import run_parallel, thread_count
 
 log = logging.getLogger(__name__)
@@ -771,7 +771,7 @@ def _solve_rounds(
     tolerance += f * np.tan(np.radians(config.rotation_slack_deg))  # the rotation candidate's own error
     for _ in range(config.solve_rounds):
         loose = replace(score_config, distance_px=tolerance, angle_deg=score_config.angle_deg + 2.0)
-        pairs = score_pose(image, lines3d, camera, pose, loose, visible).one_to_one()
+        pairs = one_to_one_pairs(image, lines3d, camera, pose, loose, visible)
         moved = pose_from_pairs(image.segments, lines3d, camera, pose, pairs)
         if moved is None:
             return None

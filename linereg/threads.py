@@ -9,8 +9,12 @@ from __future__ import annotations
 
 import threading
 from collections.abc import Callable
+from typing import Any, TypeVar
 
 import cv2
+
+A = TypeVar("A")
+B = TypeVar("B")
 
 
 def thread_count(limit: int) -> int:
@@ -42,3 +46,15 @@ def run_parallel(run: Callable[[int], None], n: int) -> None:
         thread.join()
     if errors:
         raise errors[0]
+
+
+def both(first: Callable[[], A], second: Callable[[], B]) -> tuple[A, B]:
+    """Returns ``(first(), second())``, the second in a thread of its own when ``thread_count`` allows (for
+    work that releases the GIL beside work that does not all the time)."""
+    out: list[Any] = [None, None]
+
+    def run(k: int) -> None:
+        out[k] = (first, second)[k]()
+
+    run_parallel(run, 2)
+    return out[0], out[1]
