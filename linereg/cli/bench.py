@@ -24,6 +24,7 @@ BENCHMARKS: dict[str, str] = {
     "real": "linereg.bench.real:configure",
     "sequence": "linereg.bench.sequence:configure",
     "colorize": "linereg.bench.colorize:configure",
+    "large": "linereg.bench.large:configure",
 }
 
 
