@@ -358,6 +358,9 @@ class SearchConfig:
     # a rotation candidate from vanishing directions is off by up to about this: scoring and solving a peak
     # start at a tolerance that covers it
     rotation_slack_deg: float = 1.0
+    # with a prior, only the map segments that can project at least this long into the image from a pose it
+    # allows are searched (``map.reach``): a shorter one explains or contradicts at most that many pixels
+    min_projected_px: float = 2.0
     # rotations are voted in up to this many threads (as OpenCV may use: service workers one), each holding its
     # own grids (2 x 64 MB per region): the same peaks on any count
     max_threads: int = 4

@@ -13,6 +13,7 @@ from .directions import subset_clusters
 from .geometry import segment_lengths
 from .lines2d import detect
 from .map.linemap import LineMap
+from .map.reach import seen_from
 from .pipeline import MapView, register_undistorted
 from .points import map_gap_m, map_points
 from .priors import Prior
@@ -126,7 +127,7 @@ def _localize_undistorted(
     with timer("culling"):
         index = None
         if prior is not None and prior.position is not None and prior.radius_m is not None:
-            index = line_map.segments_near(prior.position, prior.radius_m + _reach(line_map, prior))
+            index = _seen_from_prior(line_map, camera, prior, config)
         view = map_view(line_map, index, config)
     if len(view.segments) < config.min_lines3d:
         reason = (
@@ -140,9 +141,16 @@ def _localize_undistorted(
     return dataclasses.replace(result, matches=matches)
 
 
-def _reach(line_map: LineMap, prior: Prior) -> float:
-    """Returns how far beyond the prior's ball map segments may still be seen: the map's diagonal, capped at
-    ten times the radius (a camera sees far, but a prior is given to bound the work)."""
-    bounds = np.asarray(line_map.metadata["bounds"], dtype=np.float64)
-    diagonal = float(np.linalg.norm(bounds[1] - bounds[0]))
-    return min(diagonal, 10.0 * float(prior.radius_m or 0.0))
+def _seen_from_prior(line_map: LineMap, camera: Camera, prior: Prior, config: RegisterConfig) -> np.ndarray:
+    """Returns the (k,) int64 rows of the map segments that may project at least ``min_projected_px`` into
+    the image from a pose the prior allows: its centre within the prior's ball and, with a prior rotation,
+    turned at most 3 sigma from it (``map.reach``; the prior's rotation test, ``priors.admits``, is 3 sigma)."""
+    assert prior.position is not None and prior.radius_m is not None
+    turn = None
+    if prior.cam_from_world is not None and prior.sigma_rot_deg is not None:
+        turn = np.radians(3.0 * prior.sigma_rot_deg + config.search.rotation_slack_deg)
+    keep = seen_from(
+        line_map.segments, camera, prior.position, prior.radius_m, config.search.min_projected_px,
+        prior.cam_from_world, turn,
+    )  # fmt: skip
+    return np.flatnonzero(keep)

@@ -26,7 +26,7 @@ from .errors import InvalidInputError
 from .geometry import camera_center, orbited, rotation_error_deg, rotation_from_vector
 from .parallel import parallel_clusters
 from .points import Points, image_points, map_gap_m, map_points
-from .priors import Prior, admits, search_region
+from .priors import Prior, admits, admits_pose, search_region
 from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
 from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
@@ -110,7 +110,7 @@ def register_undistorted(
     # matched direction leaves an angle about it, its angles scored against the other directions; a prior
     # keeps those it admits
     with timer("rotation"):
-        candidates = rotation_candidates(vds, view.clusters, config.rotation)
+        candidates = rotation_candidates(vds, view.clusters, config.rotation, partial(admits, prior))
         if config.rotation.refit:
             candidates = refine_candidates(candidates, vds, view.clusters, lines2d, camera)
         rotations = [c.R for c in candidates]
@@ -148,8 +148,12 @@ def register_undistorted(
             view.visible,
             None if view.parts is None else lambda T: view_score(view, image, camera, T, config.score)[0],
         )
+    # a prior is a bound: poses the local solves or the refinement carry out of it are neither answers nor
+    # rivals (``priors.admits_pose``)
+    found = [f for f in found if admits_pose(prior, f.cam_from_world)]
     if not found:
-        return Registration(success=False, reason="no pose explains any image line", timings=timer.finish())
+        reason = "no pose explains any image line" + (" within the prior" if prior is not None else "")
+        return Registration(success=False, reason=reason, timings=timer.finish())
     # III-D: GTSAM refinement of the best distinct poses on their matched fragments
     with timer("refine"):
         refined = [
@@ -158,6 +162,10 @@ def register_undistorted(
             )
             for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
+        refined = [r for r in refined if admits_pose(prior, r.cam_from_world)]
+    if not refined:
+        reason = "every pose refined leaves the prior's bounds"
+        return Registration(success=False, reason=reason, timings=timer.finish())
     # copies of what the best pose sees elsewhere in the map: rivals the search need not have solved
     with timer("copies"):
         seen, found = with_copies(refined, found, view, image, camera, config, rotations, regions)
@@ -271,13 +279,16 @@ def decide(
                     f"{100 * value / best.score.value:.0f} % of the best, and {beyond}"
                 )
                 break
+    covariance = with_map_floor(best.covariance, view.accuracy_m, seen[order[0]][1], best.cam_from_world)
+    if not reason:
+        reason = undetermined(covariance, best.cam_from_world, lines3d, dc)
     return Registration(
         success=not reason,
         reason=reason,
         cam_from_world=best.cam_from_world,
         matches=matches,
         num_inliers=len(matches),
-        covariance=with_map_floor(best.covariance, view.accuracy_m, seen[order[0]][1], best.cam_from_world),
+        covariance=covariance,
         rms_px=best.rms_px,
         score=float(best.score.value),
         explained_fraction=float(explained),
@@ -286,6 +297,25 @@ def decide(
         alternatives=np.array([T for T, _, _ in alternatives]).reshape(-1, 4, 4),
         alternative_scores=np.array([s for _, s, _ in alternatives], dtype=np.float64),
         timings=timer.finish(),
+    )
+
+
+def undetermined(
+    covariance: np.ndarray, cam_from_world: np.ndarray, lines3d: np.ndarray, dc: DecideConfig
+) -> str:
+    """Returns why a pose with this (6, 6) covariance (rotation rad, translation m) is not determined ("" if
+    it is): its 3-sigma spread reaches a distinct pose (``differs``: ``distinct_angle_deg``, or
+    ``distinct_fraction`` of the depth of the (M, 6) map seen from it). The data then hold distinct poses
+    alike, found or not: a small wall patch seen square-on is pinned only up to an orbit round it, and
+    the rivals along that valley may be dismissed as less precise or as the same basin."""
+    rotation_deg = 3.0 * np.degrees(np.sqrt(max(np.linalg.eigvalsh(covariance[:3, :3]).max(), 0.0)))
+    position_m = 3.0 * np.sqrt(max(np.linalg.eigvalsh(covariance[3:, 3:]).max(), 0.0))
+    reach_m = dc.distinct_fraction * depth_of(lines3d, cam_from_world)
+    if rotation_deg <= dc.distinct_angle_deg and position_m <= reach_m:
+        return ""
+    return (
+        f"ambiguous: the pose is determined to {rotation_deg:.1f} deg / {position_m:.2f} m (3 sigma), as far "
+        f"as distinct poses lie ({dc.distinct_angle_deg:.1f} deg / {reach_m:.2f} m)"
     )
 
 

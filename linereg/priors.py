@@ -101,6 +101,19 @@ def admits(prior: Prior | None, R: np.ndarray) -> bool:
     return True
 
 
+def admits_pose(prior: Prior | None, cam_from_world: np.ndarray) -> bool:
+    """Returns True if a (4, 4) pose lies where the prior allows: its rotation admitted (``admits``) and its
+    centre within the prior's ball (a pose the search or a refinement carried out of it is not an answer
+    the prior allows, nor a rival to one)."""
+    if prior is None:
+        return True
+    if not admits(prior, cam_from_world[:3, :3]):
+        return False
+    if prior.position is None or prior.radius_m is None:
+        return True
+    return float(np.linalg.norm(camera_center(cam_from_world) - prior.position)) <= prior.radius_m
+
+
 def search_region(
     lines3d: np.ndarray, prior: Prior | None, margin_fraction: float
 ) -> tuple[np.ndarray, np.ndarray]:

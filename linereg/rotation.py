@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import itertools
 import logging
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -42,7 +43,10 @@ class RotationCandidate:
 
 
 def rotation_candidates(
-    vds: DirectionClusters, clusters: DirectionClusters, config: RotationConfig | None = None
+    vds: DirectionClusters,
+    clusters: DirectionClusters,
+    config: RotationConfig | None = None,
+    admit: Callable[[np.ndarray], bool] | None = None,
 ) -> list[RotationCandidate]:
     """Returns distinct rotation candidates, most plausible first, at most ``config.max_candidates``.
 
@@ -52,10 +56,14 @@ def rotation_candidates(
     vds: camera-frame vanishing directions (strongest first); clusters: world-frame parallel clusters.
     Pairings are tried among the ``config.top_k`` strongest of each (an image may not show the map's
     second-strongest direction). Empty when either side has fewer than two non-parallel directions.
+    ``admit(R)``: what a prior allows; the pairings it refuses are dropped before any is ranked or cut (a
+    true pairing that a wrong one confirmed by accident would push out of the list stays in it).
     """
     config = config or RotationConfig()
     V, D = vds.directions[: config.top_k], clusters.directions[: config.top_k]
     pairs = _consistent_pairings(V, D, config)  # (P, 2, 3)
+    if admit is not None and len(pairs):
+        pairs = pairs[[admit(R) for R in _fit(V, D, pairs)]]
     if len(pairs) == 0:
         return []
     third = _third_pairs(_fit(V, D, pairs), V, D, pairs, config.third_pair_tolerance_deg)  # (P, 3), -1: none

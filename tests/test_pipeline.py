@@ -120,15 +120,15 @@ def test_the_maps_own_accuracy_is_part_of_the_pose_covariance():
 
     scene = paper_scene(np.random.default_rng(0), 100, 0.3, 0.3, 2.0)
     exact = linereg.LineMap.from_segments(scene.lines3d)
-    scanned = linereg.LineMap.from_segments(scene.lines3d, profile={"spacing_m": 0.05})
-    assert exact.accuracy_m == 0.0 and scanned.accuracy_m == 0.05
+    scanned = linereg.LineMap.from_segments(scene.lines3d, profile={"spacing_m": 0.01})
+    assert exact.accuracy_m == 0.0 and scanned.accuracy_m == 0.01
     a = linereg.localize_segments(scene.lines2d, exact, scene.camera)
     b = linereg.localize_segments(scene.lines2d, scanned, scene.camera)
     assert a.success and b.success
     np.testing.assert_array_equal(a.cam_from_world, b.cam_from_world)
     added = b.covariance - a.covariance
-    np.testing.assert_allclose(np.diag(added)[3:], 0.05**2, rtol=1e-9)
+    np.testing.assert_allclose(np.diag(added)[3:], 0.01**2, rtol=1e-9)
     assert np.all(np.diag(added)[:3] > 0) and np.allclose(added, np.diag(np.diag(added)))
-    depth = 0.05 / np.sqrt(added[0, 0])  # the median depth of the map in view, a few scene units here
+    depth = 0.01 / np.sqrt(added[0, 0])  # the median depth of the map in view, a few scene units here
     assert 0.5 < depth < 20.0
-    np.testing.assert_allclose(map_floor(0.05, depth), added, rtol=1e-9)
+    np.testing.assert_allclose(map_floor(0.01, depth), added, rtol=1e-9)
