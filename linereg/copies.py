@@ -13,6 +13,8 @@ the votes are counted in), whatever the search did.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
 from .camera import Camera
@@ -33,6 +35,7 @@ def copy_starts(
     rotations: list[np.ndarray],
     arm_angle_deg: float,
     config: DecideConfig,
+    regions: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> list[tuple[np.ndarray, float, float]]:
     """Returns (start cam_from_world, size_m, share) of the copies of a pose's matched corners: under each
     (3, 3) rotation in ``rotations`` (and the pose's own), the camera centres on which corners holding at
@@ -41,7 +44,9 @@ def copy_starts(
     at its own rotation) is left out.
 
     matched: (M,) bool map segments the pose matched; map_pts, signatures: the map's corners and their arm
-    codes (``search.map_signatures``); arm_angle_deg: how far a turned arm may be from a map direction.
+    codes (``search.map_signatures``); arm_angle_deg: how far a turned arm may be from a map direction;
+    regions: boxes ((3,) low, (3,) high) the copies' centres must lie in (None: anywhere): a prior's, so that
+    the copies counted are those it admits, and a large map's pairings elsewhere cost nothing.
     """
     R, c = cam_from_world[:3, :3], camera_center(cam_from_world)
     codes = signatures.codes
@@ -54,6 +59,16 @@ def copy_starts(
     # voxels of the distinctness radius: a copy closer than that to the pose is the pose
     voxel = config.distinct_fraction * depth
     cos_arm = np.cos(np.radians(arm_angle_deg))
+    order, sorted_keys = signatures.order, signatures.keys
+    if (
+        regions is not None
+    ):  # a copy's corner X = centre + S (q - c) lies within the corners' reach of a region
+        reach = float(np.linalg.norm(map_pts.positions[q] - c, axis=1).max())
+        near = np.zeros(len(map_pts), dtype=bool)
+        for lo, hi in regions:
+            near |= np.all((map_pts.positions >= lo - reach) & (map_pts.positions <= hi + reach), axis=1)
+        kept = near[order]
+        order, sorted_keys = order[kept], sorted_keys[kept]
     turns: list[np.ndarray] = []
     out: list[tuple[np.ndarray, float, float]] = []
     for R_copy in [R, *rotations]:
@@ -62,10 +77,17 @@ def copy_starts(
             continue
         turns.append(S)
         keys = _turned_keys(codes[q], S, signatures.directions, cos_arm)
-        k, m = _compatible(keys, signatures)
+        k, m = _compatible(keys, order, sorted_keys)
         if len(k) == 0:
             continue
         centres = map_pts.positions[m] - (map_pts.positions[q[k]] - c) @ S.T
+        if regions is not None:
+            inside = np.zeros(len(centres), dtype=bool)
+            for lo, hi in regions:
+                inside |= np.all((centres >= lo) & (centres <= hi), axis=1)
+            centres, k = centres[inside], k[inside]
+            if len(k) == 0:
+                continue
         own = rotation_error_deg(S, np.eye(3)) < config.distinct_angle_deg
         for centre, share in _agreements(
             centres,
@@ -118,14 +140,17 @@ def _turned_keys(codes: np.ndarray, S: np.ndarray, directions: np.ndarray, cos_a
     return np.where((first < 0) | (two & (second < 0)), -1, keys)
 
 
-def _compatible(keys: np.ndarray, signatures: MapSignatures) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((P,) k, (P,) m): every pair of a turned point k and a map point m of the same key."""
-    lo = np.searchsorted(signatures.keys, keys, "left")
-    hi = np.searchsorted(signatures.keys, keys, "right")
+def _compatible(
+    keys: np.ndarray, order: np.ndarray, sorted_keys: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((P,) k, (P,) m): every pair of a turned point k and a map point m of the same key, among the
+    map points ``order`` whose keys are ``sorted_keys`` (``MapSignatures.order``, ``.keys`` or part of them)."""
+    lo = np.searchsorted(sorted_keys, keys, "left")
+    hi = np.searchsorted(sorted_keys, keys, "right")
     counts = np.where(keys >= 0, hi - lo, 0)
     k = np.repeat(np.arange(len(keys)), counts)
     start = np.repeat(lo - np.cumsum(counts) + counts, counts)
-    return k, signatures.order[start + np.arange(len(k))]
+    return k, order[start + np.arange(len(k))]
 
 
 def _agreements(

@@ -15,7 +15,7 @@ from .lines2d import detect
 from .map.linemap import LineMap
 from .map.reach import seen_from
 from .pipeline import MapView, register_undistorted
-from .points import map_gap_m, map_points
+from .points import map_gap_m, map_points, subset_points
 from .priors import Prior
 from .registration import Registration, check_segments
 from .search import map_signatures
@@ -58,7 +58,8 @@ def localize_segments(
 
 def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig) -> MapView:
     """Returns the MapView of the map's segments ``index`` (None: all): clusters restricted to them, their
-    corner points and signatures (those of the whole map are computed once and kept by the map)."""
+    corner points (the whole map's, computed once and kept by the map, restricted to them:
+    ``points.subset_points``) and signatures."""
     if index is None:
         cached = line_map.cache.get("view")
         if cached is None or cached[0] != config.points:
@@ -74,7 +75,7 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
         return cached[1]
     segments = line_map.segments[index]
     clusters = subset_clusters(line_map.clusters, index, segment_lengths(segments))
-    points = map_points(segments, config.points, map_gap_m(line_map.segments, config.points))
+    points = subset_points(map_view(line_map, None, config).points, index, len(line_map.segments))
     signatures = map_signatures(points, clusters.labels, clusters.directions)
     return MapView(
         segments,

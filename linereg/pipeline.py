@@ -476,7 +476,7 @@ def copy_rivals(
     matched[score.matches(dc.min_cover)[:, 1]] = True
     starts = copy_starts(
         cam_from_world, matched, view.points, view.signatures, view.segments, camera, list(rotations),
-        config.search.arm_angle_deg, dc,
+        config.search.arm_angle_deg, dc, regions,
     )  # fmt: skip
     starts += _orbit_starts(cam_from_world, view.segments[matched], dc)
     inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]

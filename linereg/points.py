@@ -51,6 +51,21 @@ def map_points(lines3d: np.ndarray, config: PointsConfig, gap_m: float) -> Point
     return _points(np.asarray(lines3d, dtype=np.float64).reshape(-1, 2, 3), gap_m, config)
 
 
+def subset_points(points: Points, index: np.ndarray, num_segments: int) -> Points:
+    """Returns the points of a map's (M = ``num_segments``) segments restricted to the rows ``index`` (k,),
+    renumbered to those rows' order: the points whose every arm lies on a kept segment (a corner that loses
+    an arm is left out, where ``map_points`` of the subset would make its other segment's end a free end:
+    the subset is a view's, and the lost arm is one no camera in it sees)."""
+    local = np.full(num_segments + 1, -1, dtype=np.int64)  # the last entry maps a missing arm (-1) to -1
+    local[np.asarray(index, dtype=np.int64)] = np.arange(len(index))
+    segments = local[points.arm_segments]
+    keep = (segments[:, 0] >= 0) & ((segments[:, 1] >= 0) | (points.arm_segments[:, 1] < 0))
+    return Points(
+        points.positions[keep], points.arms[keep], points.arm_lengths[keep], segments[keep],
+        points.weight[keep],
+    )  # fmt: skip
+
+
 def map_gap_m(lines3d: np.ndarray, config: PointsConfig) -> float:
     """Returns the corner gap for a map: ``config.gap_fraction`` of its median segment length."""
     lengths = np.linalg.norm(lines3d[:, 3:6] - lines3d[:, 0:3], axis=1)

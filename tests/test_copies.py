@@ -14,7 +14,7 @@ from linereg.sim.synthetic import look_at
 CAMERA = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
 
 
-def starts_of(segments: np.ndarray, pose: np.ndarray, rotations: list[np.ndarray]) -> list:
+def starts_of(segments: np.ndarray, pose: np.ndarray, rotations: list[np.ndarray], regions=None) -> list:
     """Returns ``copy_starts`` of a pose matching every map segment it sees (the map without surfaces)."""
     config = RegisterConfig()
     view = map_view(linereg.LineMap.from_segments(segments), None, config)
@@ -24,7 +24,7 @@ def starts_of(segments: np.ndarray, pose: np.ndarray, rotations: list[np.ndarray
     matched[score.matches(0.5)[:, 1]] = True
     return copy_starts(
         pose, matched, view.points, view.signatures, segments, CAMERA, rotations,
-        config.search.arm_angle_deg, config.decide,
+        config.search.arm_angle_deg, config.decide, regions,
     )  # fmt: skip
 
 
@@ -64,3 +64,19 @@ def test_a_lone_facade_has_no_copy():
     pattern = segments[: len(segments) // 2]
     pose = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
     assert starts_of(pattern, pose, [pose[:3, :3]]) == []
+
+
+def test_copies_outside_the_regions_searched_are_not_counted():
+    """Three copies of the facade 20 m apart: a region round the second finds it alone, one round neither
+    finds none (a prior's ball; on a large map the corners beyond the regions' reach are not even paired)."""
+    segments, _ = facade_copies()
+    pattern = segments[: len(segments) // 2]
+    three = np.concatenate([pattern + np.tile([0.0, y, 0.0], 2) for y in (0.0, 20.0, 40.0)])
+    pose = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    everywhere = starts_of(three, pose, [])
+    assert sorted(round(float(camera_center(T)[1])) for T, _, _ in everywhere) == [20, 40]
+    second = [(np.array([0.0, 15.0, 0.0]), np.array([4.0, 25.0, 3.0]))]
+    (T, size, _), *others = starts_of(three, pose, [], second)
+    assert not others and np.linalg.norm(camera_center(T) - [2.0, 20.0, 1.5]) <= size
+    neither = [(np.array([0.0, 25.0, 0.0]), np.array([4.0, 35.0, 3.0]))]
+    assert starts_of(three, pose, [], neither) == []

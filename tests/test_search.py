@@ -219,3 +219,30 @@ def test_rays_through_one_map_point_make_no_peak_at_it(rng):
     assert votes.reshape(-1)[near].max() == 0.0
     grid.vote(rays, positions, np.ones(50), 0.0)  # without the near limit: still one vote per map point
     assert grid.votes.max() == 10.0
+
+
+def test_a_views_points_are_the_maps_own_restricted_to_it():
+    """``points.subset_points``: the corners of a map's subset are those ``map_points`` finds in the whole map
+    with every arm kept (a corner losing an arm is left out), renumbered to the subset's rows."""
+    from linereg.points import map_gap_m, map_points, subset_points
+
+    config = RegisterConfig().points
+    # a window grid: every corner joins a vertical and a horizontal line
+    ticks = np.arange(0.0, 5.0, 1.0)
+    lines3d = np.array(
+        [[x, 0.0, 0.0, x, 0.0, 4.0] for x in ticks] + [[0.0, 0.0, z, 4.0, 0.0, z] for z in ticks[:-1]]
+    )
+    whole = map_points(lines3d, config, map_gap_m(lines3d, config))
+    index = np.array([0, 2, 3, 5, 6])
+    sub = subset_points(whole, index, len(lines3d))
+    kept = (np.isin(whole.arm_segments, index) | (whole.arm_segments < 0)).all(axis=1)
+    assert 0 < len(sub) == int(kept.sum()) < len(whole)
+    np.testing.assert_array_equal(sub.positions, whole.positions[kept])
+    back = np.where(sub.arm_segments >= 0, index[np.maximum(sub.arm_segments, 0)], -1)
+    np.testing.assert_array_equal(back, whole.arm_segments[kept])
+    for k, position in enumerate(sub.positions):
+        segments = sub.arm_segments[k][sub.arm_segments[k] >= 0]
+        for s in index[segments]:  # each point lies on (or at the end of) the segments of its arms
+            a, b = lines3d[s, :3], lines3d[s, 3:]
+            t = np.clip((position - a) @ (b - a) / ((b - a) @ (b - a)), 0.0, 1.0)
+            assert np.linalg.norm(a + t * (b - a) - position) < 1e-9
