@@ -1,6 +1,6 @@
 """Sequences: per-frame registration vs one smoothed GTSAM graph vs live tracking; ATE/RPE, timings, plots.
 
-``linereg bench sequence [--scene synthetic|kitchen|all] [--seed N] [--duration S] [--out DIR]``
+``linereg bench sequence [--scene synthetic|kitchen|all] [--seeds N ...] [--duration S] [--out DIR]``
 
 synthetic: the demo building scanned and mapped (``LineMap.build``), a walk round its courtyard
 (``sim.paths``: 1.4 m/s, 10 Hz, ``--duration`` s) rendered by the demo renderer, with a 2 s blackout of
@@ -35,7 +35,14 @@ from ..bench.real import default_data_dir
 
 def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--scene", choices=("synthetic", "kitchen", "all"), default="all")
-    parser.add_argument("--seed", type=int, default=0, help="synthetic scene seed (default 0)")
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="synthetic scene seeds (default 0): one walk each, and a table of every row's wrong claims and "
+        "frames within summed over them (a lost track's wrong claims come in runs: one walk can hide them)",
+    )
     parser.add_argument("--duration", type=float, default=32.0, help="synthetic walk, seconds (default 32)")
     parser.add_argument("--data", type=Path, help="real data folder (default: shared/data beside the repo)")
     parser.add_argument("--out", type=Path, default=Path("bench_sequence"), help="output folder")
@@ -60,14 +67,21 @@ def run(args: argparse.Namespace) -> int:
     from ..cli import check_output_dir
 
     check_output_dir("--out", args.out)
+    from ..errors import InvalidInputError
+
+    if len(set(args.seeds)) != len(args.seeds):
+        raise InvalidInputError(f"--seeds must differ, got {args.seeds}")
     scenes = ("synthetic", "kitchen") if args.scene == "all" else (args.scene,)
     summary = {}
     for scene in scenes:
-        problem = (
-            synthetic_problem(args.seed, args.duration)
-            if scene == "synthetic"
-            else kitchen_problem(args.data)
-        )
+        if scene == "synthetic":
+            for seed in args.seeds:
+                name = "synthetic" if len(args.seeds) == 1 else f"synthetic-seed{seed}"
+                summary[name] = evaluate(synthetic_problem(seed, args.duration), args, args.out / name)
+            if len(args.seeds) > 1:
+                _print_seeds(args.seeds, [summary[f"synthetic-seed{seed}"] for seed in args.seeds])
+            continue
+        problem = kitchen_problem(args.data)
         if problem is None:
             print(f"{scene}: data not found, skipped")
             continue
@@ -388,6 +402,22 @@ def _plot(path: Path, title: str, truth: np.ndarray, rows: dict[str, np.ndarray]
     ax.legend()
     fig.savefig(path, dpi=120, bbox_inches="tight")
     plt.close(fig)
+
+
+def _print_seeds(seeds: list[int], results: list[dict[str, Any]]) -> None:
+    """Prints every row's wrong claims and frames within per walk and summed over the walks."""
+    frames = [r["frames"] for r in results]
+    print(
+        f"\nsynthetic walks, seeds {' '.join(map(str, seeds))}: wrong claims / frames within, per walk and in all"
+    )
+    for row_name in results[0]["rows"]:
+        cells = [r["rows"][row_name] for r in results]
+        # the global row registers every N-th frame only: its shares are of those frames
+        counts = [len(c["frames"]) if "frames" in c else n for c, n in zip(cells, frames, strict=True)]
+        within = [round(c["within"] * n) for c, n in zip(cells, counts, strict=True)]
+        per = "  ".join(f"{c['wrong']:3d} / {w:3d}" for c, w in zip(cells, within, strict=True))
+        wrong = sum(c["wrong"] for c in cells)
+        print(f"{row_name:<14} {per}   all: {wrong:4d} / {sum(within):4d} of {sum(counts)}")
 
 
 def _print(name: str, rows: dict[str, Any], global_start: dict[str, Any]) -> None:
