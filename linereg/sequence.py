@@ -8,7 +8,9 @@
 2. One graph over all frames: a line-projection factor per frame on its matched fragments (the
    refinement's vectorised factor, Huber kernel in pixels, noise = the frame's own residual level), a
    ``BetweenFactorPose3`` per odometry step with its covariance, and, only when asked
-   (``smoothness``), a random-walk prior between consecutive frames. Re-association rounds: each frame's
+   (``smoothness``), a random-walk prior between consecutive frames. It starts each fixed frame at its
+   fix and each frame between fixes where the pose graph of the fixes and the odometry puts it (the
+   drift shared over the gap, not chained from one side). Re-association rounds: each frame's
    fragments are matched again at the smoothed poses until no frame's pairs change.
 3. Marginal covariance per frame. A frame whose own lines do not fix it but which odometry ties to fixed
    frames keeps its smoothed pose with ``success=False, reason="from neighbours ..."`` and the larger
@@ -19,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import partial
 
@@ -414,7 +416,7 @@ def smooth(
     ``accuracy_m``: how well the map places its lines (``LineMap.accuracy_m``), added to each frame's
     reported covariance (``pipeline.with_map_floor``)."""
     links = _links(len(images), relative, covariances, config)
-    poses = _initial(alone, links)
+    poses = _initial(alone, links, config)
     rc = config.register
     # a fix starts at its own refinement's tolerance; a frame placed by odometry needs a wider capture
     tolerance = {k: _start_tolerance(alone[k], rc) for k in poses}
@@ -495,10 +497,13 @@ def _links(
     return [(k, np.eye(4), walk) for k in range(n - 1)]
 
 
-def _initial(alone: list[Registration], links: list[_Link]) -> dict[int, np.ndarray]:
-    """Returns the initial pose of every frame the graph can reach: its own fix (claimed or gated), else
-    chained along the links from the nearest fix before it, else back from the nearest one after it."""
-    poses = {k: r.cam_from_world for k, r in enumerate(alone) if _fitted(r)}
+def _initial(alone: list[Registration], links: list[_Link], config: SequenceConfig) -> dict[int, np.ndarray]:
+    """Returns the initial pose of every frame the graph can reach: its own fix (claimed or gated); a frame
+    between fixes, where the pose graph of the fixes (each a prior with its covariance) and the odometry
+    puts it, the drift shared over the gap; a frame the graph cannot place, chained along the links from
+    the nearest fix before it, else back from the nearest one after it."""
+    fixed = {k: r.cam_from_world for k, r in enumerate(alone) if _fitted(r)}
+    poses = dict(fixed)
     step = {k: T for k, T, _ in links}
     for k in range(1, len(alone)):
         if k not in poses and k - 1 in poses and k - 1 in step:
@@ -506,14 +511,39 @@ def _initial(alone: list[Registration], links: list[_Link]) -> dict[int, np.ndar
     for k in range(len(alone) - 2, -1, -1):
         if k not in poses and k + 1 in poses and k in step:
             poses[k] = step[k] @ poses[k + 1]  # cam_k_from_cam_k+1 @ cam_k+1_from_world
-    return dict(sorted(poses.items()))
+    bridged = _pose_graph(poses, {k: alone[k].covariance for k in fixed}, links, config)
+    return dict(sorted((poses | {k: T for k, T in bridged.items() if k not in fixed}).items()))
+
+
+def _pose_graph(
+    poses: dict[int, np.ndarray],
+    covariances: dict[int, np.ndarray],
+    links: list[_Link],
+    config: SequenceConfig,
+) -> dict[int, np.ndarray]:
+    """Returns the poses of the pose graph started at ``poses``: a prior per fix with its (6, 6) covariance
+    (fixes without a usable one are left out), a ``BetweenFactorPose3`` per odometry link; {} when no fix
+    has a usable covariance or the graph cannot be solved."""
+    anchors = {
+        k: gtsam.PriorFactorPose3(frame_key(k), to_pose3(poses[k]), gtsam.noiseModel.Gaussian.Covariance(C))
+        for k, C in covariances.items()
+        if np.all(np.isfinite(C)) and np.all(np.linalg.eigvalsh(0.5 * (C + C.T)) > 0)
+    }
+    if not anchors:
+        return {}
+    graph, members = _graph(poses, {}, links, anchors)
+    return _optimise(graph, members, poses, config)
 
 
 def _graph(
-    poses: dict[int, np.ndarray], fits: dict[int, LineFit], links: list[_Link]
+    poses: dict[int, np.ndarray],
+    fits: dict[int, LineFit],
+    links: list[_Link],
+    anchors: Mapping[int, gtsam.NonlinearFactor] | None = None,
 ) -> tuple[gtsam.NonlinearFactorGraph, list[int]]:
     """Returns the graph and its frames: the connected groups of frames holding at least one line factor
-    (a group without one has nothing fixing it in the world)."""
+    or one of the ``anchors`` (frame -> a factor on that frame alone; a group without either has nothing
+    fixing it in the world)."""
     parent = {k: k for k in poses}
 
     def root(k: int) -> int:
@@ -525,13 +555,16 @@ def _graph(
     used = [(k, T, C) for k, T, C in links if k in poses and k + 1 in poses]
     for k, _, _ in used:
         parent[root(k)] = root(k + 1)
-    anchored = {root(k) for k in fits}
+    anchors = anchors or {}
+    anchored = {root(k) for k in (*fits, *anchors)}
     members = [k for k in poses if root(k) in anchored]
     keep = set(members)
     graph = gtsam.NonlinearFactorGraph()
     for k in members:
         if k in fits:
             graph.add(fits[k].factor)
+        if k in anchors:
+            graph.add(anchors[k])
     for k, T, C in used:
         if k in keep:
             graph.add(odometry_factor(k, T, C))

@@ -10,12 +10,14 @@ import gtsam
 import numpy as np
 import pytest
 
+from linereg import sequence
 from linereg.camera import Camera
 from linereg.errors import InvalidInputError
 from linereg.geometry import invert, pose_errors
 from linereg.graph import from_pose3, relative_pose, to_pose3
 from linereg.map.linemap import LineMap
 from linereg.priors import Prior
+from linereg.registration import Registration
 from linereg.score import image_lines
 from linereg.sequence import FROM_NEIGHBOURS, GATED, SequenceConfig, frames_alone, localize_sequence
 from linereg.sim.synthetic import look_at, project_visible
@@ -310,3 +312,34 @@ def test_reported_covariances_include_the_maps_accuracy(scene):
         a, b = (t.step(frames[k], relative[k - 1]) for t in trackers)
         assert a.success and b.success
         np.testing.assert_allclose(np.diag(b.covariance - a.covariance)[3:], 0.05**2, rtol=1e-6)
+
+
+def test_frames_between_fixes_start_where_the_fixes_and_the_odometry_put_them():
+    # odometry that overshoots 1 cm a step: chained forward from the first fix, the frame before the
+    # second fix would start 9 cm off; the pose graph of the two fixes and the odometry shares the drift
+    # over the gap (a constant overshoot cancels: every frame starts at its true pose)
+    truth = np.array(
+        [look_at(np.array([0.1 * k, -5.0, 1.0]), np.array([0.1 * k, 0.0, 1.0])) for k in range(11)]
+    )
+    relative = [relative_pose(a, b) for a, b in itertools.pairwise(truth)]
+    world_step = np.array([0.01, 0.0, 0.0])  # the overshoot, in the world
+    for k, T in enumerate(relative):
+        T[:3, 3] -= truth[k][:3, :3] @ world_step  # cam_k_from_cam_k+1 moves c_k+1 by +world_step
+    covariances = [np.eye(6) * 1e-4 for _ in relative]
+    fix = np.eye(6) * 1e-8
+    alone = [
+        Registration(
+            success=k in (0, 10), cam_from_world=truth[k] if k in (0, 10) else np.eye(4), covariance=fix
+        )
+        for k in range(11)
+    ]
+    links = sequence._links(11, relative, covariances, SequenceConfig())
+    chained = sequence.predict(truth[0], relative[0])
+    for k in range(1, 9):
+        chained = sequence.predict(chained, relative[k])
+    assert pose_errors(chained, truth[9])[1] == pytest.approx(0.09, abs=1e-6)
+    start = sequence._initial(alone, links, SequenceConfig())
+    assert sorted(start) == list(range(11))
+    for k, T in start.items():
+        rot, pos, _ = pose_errors(T, truth[k])
+        assert pos < 1e-3 and rot < 1e-2, k
