@@ -333,7 +333,8 @@ class PointsConfig:
 class SearchConfig:
     """The search over camera centres (``search.py``): rays from matched points vote in a voxel grid."""
 
-    # the search region is cut into about this many cubic voxels for coarse votes (2 x 96 MB): at 2 M (1.7 m
+    # the search region is cut into about this many cubic voxels for coarse votes (4 x 32 MB per voting
+    # thread, mapped lazily: what the rays reach, ~1-2 % of the voxels, is resident): at 2 M (1.7 m
     # voxels on the demo's 60 m block) shifts of a window lattice outvoted the true camera centre, whose
     # coarse peak was then never solved (docs/measurements.md)
     voxels: int = 8_000_000

@@ -104,7 +104,7 @@ def search(
                 # coarse votes over the whole region, then finer ones around the best coarse voxels
                 near = config.min_range_voxels * grid.voxel
                 grid.vote(rays, map_pts.positions, image_pts.weight, near)
-                centres, _ = _peaks(grid.votes, grid.lo, grid.voxel, config.coarse_peaks)
+                centres, _ = _peaks(grid.votes, grid.lo, grid.voxel, config.coarse_peaks, grid.voted)
                 half = config.fine_span * grid.voxel
                 fine_votes = fine.vote(centres, half, rays, map_pts.positions, image_pts.weight, near)
                 for centre, v, size in fine_votes:
@@ -255,26 +255,35 @@ def map_signatures(map_pts: Points, labels: np.ndarray, directions: np.ndarray) 
 
 
 class _Grid:
-    """A voxel grid of votes over a box: accumulator, and the id of the image point that voted last in each
-    voxel (one vote per image point and voxel; ids grow with every vote pass, so stamps are never reset)."""
+    """A voxel grid of votes over a box: accumulator, the ids of the image and the map point that voted
+    last in each voxel (one vote per image point and voxel, and per map point and voxel; ids start at 1 and
+    grow with every vote pass, so stamps are never reset: 0 is no vote), and the voxels voted in, in the
+    order they were first voted (a ray crosses a few hundred of millions of voxels: clearing the votes and
+    finding their peaks reads only those). All start as zeros, which the system maps lazily: a grid costs
+    the memory its rays reach."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, voxel: float, dims: np.ndarray) -> None:
         self.lo, self.hi, self.voxel, self.dims = lo, hi, voxel, dims
-        self.accumulator = np.zeros(int(np.prod(dims)), np.float32)
-        self.stamp = np.full(len(self.accumulator), -1, np.int32)  # ids of one search stay far below 2**31
-        self.stamp_map = np.full(len(self.accumulator), -1, np.int32)
-        self.next_id = self.next_map_id = 0
+        size = int(np.prod(dims))
+        self.accumulator = np.zeros(size, np.float32)
+        self.stamp = np.zeros(size, np.int32)  # ids of one search stay far below 2**31
+        self.stamp_map = np.zeros(size, np.int32)
+        self.touched = np.zeros(size, np.int32)  # each voxel enters once: it never overflows
+        self.count = np.zeros(1, np.int64)
+        self.next_id = self.next_map_id = 1
 
     def vote(
         self, rays: tuple[np.ndarray, ...], positions: np.ndarray, weight: np.ndarray, lam_min: float
     ) -> None:
         """Clears the votes, then lets every ray ``(k, m, lambda_max, direction)`` vote where it crosses,
         farther than ``lam_min`` from its map point."""
-        self.accumulator[:] = 0.0
+        self.accumulator[self.voted] = 0.0
+        self.count[0] = 0
         k, m, lam_max, direction = rays
         _vote_rays(
             k, m, lam_max, direction, positions, weight, self.lo, self.hi, self.voxel, self.dims,
-            self.accumulator, self.stamp, self.stamp_map, self.next_id, self.next_map_id, lam_min,
+            self.accumulator, self.stamp, self.stamp_map, self.touched, self.count, self.next_id,
+            self.next_map_id, lam_min,
         )  # fmt: skip
         self.next_id += int(k.max()) + 1 if len(k) else 0
         self.next_map_id += len(positions)
@@ -282,6 +291,11 @@ class _Grid:
     @property
     def votes(self) -> np.ndarray:
         return self.accumulator.reshape(self.dims)
+
+    @property
+    def voted(self) -> np.ndarray:
+        """Returns the (V,) flat indices of the voxels with votes, each once."""
+        return self.touched[: self.count[0]]
 
 
 class _FineGrids:
@@ -291,9 +305,11 @@ class _FineGrids:
     def __init__(self, count: int, side: int) -> None:
         self.side = side
         self.accumulator = np.zeros((count, side**3), np.float32)
-        self.stamp = np.full((count, side**3), -1, np.int32)
-        self.stamp_map = np.full((count, side**3), -1, np.int32)
-        self.next_id = self.next_map_id = 0
+        self.stamp = np.zeros((count, side**3), np.int32)
+        self.stamp_map = np.zeros((count, side**3), np.int32)
+        self.touched = np.zeros((count, side**3), np.int32)
+        self.count = np.zeros(count, np.int64)
+        self.next_id = self.next_map_id = 1
 
     def vote(
         self,
@@ -312,16 +328,18 @@ class _FineGrids:
         voxel = np.max(hi - lo, axis=1) / self.side
         dims = np.full(3, self.side, dtype=np.int64)
         self.accumulator[:n] = 0.0
+        self.count[:] = 0
         k, m, lam_max, direction = rays
         _vote_boxes(
             k, m, lam_max, direction, positions, weight, lo, hi, voxel, dims, self.accumulator,
-            self.stamp, self.stamp_map, self.next_id, self.next_map_id, lam_min,
+            self.stamp, self.stamp_map, self.touched, self.count, self.next_id, self.next_map_id, lam_min,
         )  # fmt: skip
         self.next_id += int(k.max()) + 1 if len(k) else 0
         self.next_map_id += len(positions)
         out = []
         for b in range(n):
-            best, votes = _peaks(self.accumulator[b].reshape(dims), lo[b], float(voxel[b]), 1)
+            voted = self.touched[b, : self.count[b]]
+            best, votes = _peaks(self.accumulator[b].reshape(dims), lo[b], float(voxel[b]), 1, voted)
             out += [(c, float(v), float(voxel[b])) for c, v in zip(best, votes, strict=True)]
         return out
 
@@ -387,9 +405,13 @@ def _ray(
     accumulator: np.ndarray,
     stamp: np.ndarray,
     stamp_map: np.ndarray,
+    touched: np.ndarray,
+    count: np.ndarray,
+    slot: int,
 ) -> int:
-    """Votes image point k's weight along ``Xm - lambda ray``, lam_min < lambda <= lam_max, inside [lo, hi],
-    in the voxels where neither image point k nor map point m has voted yet (ids ``k`` and ``m``)."""
+    """Votes image point k's weight (>= 0) along ``Xm - lambda ray``, lam_min < lambda <= lam_max, inside
+    [lo, hi], in the voxels where neither image point k nor map point m has voted yet (ids ``k`` and ``m``);
+    a voxel getting its first votes is appended to ``touched`` (its ``count[slot]`` entries)."""
     lam0, lam1 = lam_min, lam_max
     for axis in range(3):  # the part of the ray inside the region (slab method)
         d = -ray[axis]
@@ -414,6 +436,9 @@ def _ray(
         if stamp[v] != k and stamp_map[v] != m:
             stamp[v] = k
             stamp_map[v] = m
+            if weight > 0.0 and accumulator[v] == 0.0:
+                touched[count[slot]] = v
+                count[slot] += 1
             accumulator[v] += weight
     return 1
 
@@ -532,6 +557,8 @@ def _vote_rays(
     accumulator: np.ndarray,
     stamp: np.ndarray,
     stamp_map: np.ndarray,
+    touched: np.ndarray,
+    count: np.ndarray,
     first_id: int,
     first_map_id: int,
     lam_min: float,
@@ -552,6 +579,9 @@ def _vote_rays(
             accumulator,
             stamp,
             stamp_map,
+            touched,
+            count,
+            0,
         )
 
 
@@ -570,12 +600,14 @@ def _vote_boxes(
     accumulator: np.ndarray,
     stamp: np.ndarray,
     stamp_map: np.ndarray,
+    touched: np.ndarray,
+    count: np.ndarray,
     first_id: int,
     first_map_id: int,
     lam_min: float,
 ) -> None:  # pragma: no cover - numba
     """``_vote_rays`` into each of the grids over boxes [lo[b], hi[b]] of voxels ``voxel[b]`` (rows of
-    ``accumulator`` and ``stamp``); a ray whose stretch stays outside a box's circumscribed sphere skips that
+    ``accumulator``, ``stamp``, ``touched``, and of ``count``); a ray whose stretch stays outside a box's circumscribed sphere skips that
     box's exact test (it cannot cross the box), so every grid gets the votes ``_vote_rays`` would give it."""
     centre = 0.5 * (lo + hi)
     radius2 = np.empty(len(lo))
@@ -605,14 +637,20 @@ def _vote_boxes(
                 accumulator[b],
                 stamp[b],
                 stamp_map[b],
+                touched[b],
+                count,
+                b,
             )
 
 
-def _peaks(votes: np.ndarray, lo: np.ndarray, voxel: float, count: int) -> tuple[np.ndarray, np.ndarray]:
+def _peaks(
+    votes: np.ndarray, lo: np.ndarray, voxel: float, count: int, voted: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((<= count, 3) world centres, their votes) of the voxels with the most ``votes`` (a grid with
     lower corner ``lo`` and cubic voxels of ``voxel`` m), 3 voxels apart, after pooling votes over 2 x 2 x 2
-    neighbourhoods (the rays of one camera meet within a voxel or two)."""
-    top, values = _top_pooled(np.ascontiguousarray(votes), 64 * count)
+    neighbourhoods (the rays of one camera meet within a voxel or two); ``voted``: the flat indices of every
+    voxel with votes, each once (``_Grid.voted``)."""
+    top, values = _top_pooled(np.ascontiguousarray(votes), voted, 64 * count)
     order = np.lexsort((top, -values))  # most votes first, ties in voxel order
     top, values = top[order], values[order]
     cells = np.stack(np.unravel_index(top[values > 0], votes.shape), axis=1)
@@ -629,43 +667,37 @@ def _peaks(votes: np.ndarray, lo: np.ndarray, voxel: float, count: int) -> tuple
     return centres, np.array([pooled[f] for f in flat])
 
 
-_RUN = 64  # voxels whose maximum _top_pooled tests before looking at each
-
-
 @numba.njit(cache=True, nogil=True)
-def _top_pooled(votes: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
-    """Returns ((<= n,) flat indices, their values) of the largest values of ``votes`` pooled by the max over
-    the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), unordered: the n largest by (value,
-    then lower index first).
+def _top_pooled(
+    votes: np.ndarray, voted: np.ndarray, n: int
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns ((<= n,) flat indices, their values) of the largest positive values of ``votes`` pooled by the
+    max over the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), unordered: the n largest by
+    (value, then lower index first). ``voted``: the flat indices of every voxel with a positive vote, each
+    once, in any order (a pooled value is the vote of one voxel of its block: only those can raise one).
 
-    A pooled value is the vote of one voxel of its block, so only voxels with more votes than the n-th best
-    so far can raise one: every other voxel costs one read, and a run of ``_RUN`` of them one maximum (a
-    comparison the compiler vectorises). Each pooled voxel is offered once, by the voxel
-    of its block that holds its maximum (the first of them in index order)."""
+    Each pooled voxel is offered once, by the voxel of its block that holds its maximum (the first of them
+    in index order); the heap's ranking is a total order, so the answer does not depend on ``voted``'s."""
     X, Y, Z = votes.shape
     heap_v = np.full(n, -1.0, np.float64)
     heap_i = np.full(n, -1, np.int64)
     flat = votes.reshape(-1)
-    for run in range(0, flat.size, _RUN):
-        stop = min(run + _RUN, flat.size)
-        # a run of voxels all below the root's value offers nothing: the test below for all of them at once
-        if _run_max(flat, run, stop) < heap_v[0]:
+    for j in range(len(voted)):
+        v_index = int(voted[j])
+        w = flat[v_index]
+        # every pooled voxel it offers has an index >= its own: none can beat the root if (w, v_index) does not
+        if w <= 0.0 or not _worse(heap_v[0], heap_i[0], w, v_index):
             continue
-        for v_index in range(run, stop):
-            w = flat[v_index]
-            # every pooled voxel it offers has an index >= its own: none can beat the root if (w, v_index) does not
-            if not _worse(heap_v[0], heap_i[0], w, v_index):
-                continue
-            x, rest = divmod(v_index, Y * Z)
-            y, z = divmod(rest, Z)
-            # the pooled voxels whose block holds this voxel: (x, y, z) + (0 or 1 on each axis)
-            for px in range(x, min(x + 2, X)):
-                for py in range(y, min(y + 2, Y)):
-                    for pz in range(z, min(z + 2, Z)):
-                        p = (px * Y + py) * Z + pz
-                        # the root is the heap's worst entry
-                        if _worse(heap_v[0], heap_i[0], w, p) and _owns(votes, px, py, pz, w, v_index):
-                            _replace_root(heap_v, heap_i, w, p)
+        x, rest = divmod(v_index, Y * Z)
+        y, z = divmod(rest, Z)
+        # the pooled voxels whose block holds this voxel: (x, y, z) + (0 or 1 on each axis)
+        for px in range(x, min(x + 2, X)):
+            for py in range(y, min(y + 2, Y)):
+                for pz in range(z, min(z + 2, Z)):
+                    p = (px * Y + py) * Z + pz
+                    # the root is the heap's worst entry
+                    if _worse(heap_v[0], heap_i[0], w, p) and _owns(votes, px, py, pz, w, v_index):
+                        _replace_root(heap_v, heap_i, w, p)
     keep = heap_i >= 0
     return heap_i[keep], heap_v[keep]
 
@@ -704,15 +736,6 @@ def _replace_root(heap_v: np.ndarray, heap_i: np.ndarray, w: float, p: int) -> N
         heap_v[i], heap_v[s] = heap_v[s], heap_v[i]
         heap_i[i], heap_i[s] = heap_i[s], heap_i[i]
         i = s
-
-
-@numba.njit(cache=True, nogil=True)
-def _run_max(flat: np.ndarray, start: int, stop: int) -> float:  # pragma: no cover - numba
-    """Returns the largest of flat[start:stop] (start < stop)."""
-    top = flat[start]
-    for i in range(start + 1, stop):
-        top = max(top, flat[i])
-    return top
 
 
 @numba.njit(cache=True, nogil=True)

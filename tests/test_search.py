@@ -86,9 +86,11 @@ def test_top_pooled_returns_the_largest_pooled_votes_lower_index_first(kind):
             votes = (rng.random(shape) < 0.03) * rng.integers(1, 3, shape).astype(np.float64)
         votes = votes.astype(np.float32)
         n = int(rng.integers(1, 400))
-        index, value = _top_pooled(votes, n)
+        voted = rng.permutation(np.flatnonzero(votes)).astype(np.int32)  # in any order
+        index, value = _top_pooled(votes, voted, n)
         pooled = _pooled_brute_force(votes).ravel()
         order = np.lexsort((np.arange(pooled.size), -pooled))[:n]  # most votes first, ties lower index first
+        order = order[pooled[order] > 0]
         got = np.lexsort((index, -value))
         np.testing.assert_array_equal(index[got], order)
         np.testing.assert_array_equal(value[got], pooled[order])
@@ -157,7 +159,7 @@ def test_the_fine_grids_get_the_votes_of_one_grid_each(rng):
         grid = _Grid(lo, hi, float(np.max(hi - lo)) / side, np.full(3, side, dtype=np.int64))
         grid.vote(rays, positions, weight, 0.7)
         np.testing.assert_array_equal(fine.accumulator[b], grid.accumulator)
-        best, votes = _peaks(grid.votes, grid.lo, grid.voxel, 1)
+        best, votes = _peaks(grid.votes, grid.lo, grid.voxel, 1, grid.voted)
         expected += [(c, float(v), grid.voxel) for c, v in zip(best, votes, strict=True)]
     assert len(peaks) == len(expected) > 0
     for (c, v, size), (ce, ve, se) in zip(peaks, expected, strict=True):
@@ -219,6 +221,27 @@ def test_rays_through_one_map_point_make_no_peak_at_it(rng):
     assert votes.reshape(-1)[near].max() == 0.0
     grid.vote(rays, positions, np.ones(50), 0.0)  # without the near limit: still one vote per map point
     assert grid.votes.max() == 10.0
+
+
+def test_a_grid_lists_each_voxel_with_votes_once_pass_after_pass(rng):
+    """``_Grid.voted`` (what clearing and the peaks read instead of the whole grid) is exactly the voxels
+    with votes, each once, after every pass; a pass's votes are cleared before the next, and stamps of one
+    pass never hide votes of the next."""
+    positions = rng.uniform(-2.0, 2.0, (60, 3))
+    lo, hi = np.full(3, -3.0), np.full(3, 3.0)
+    grid = _Grid(lo, hi, 0.15, np.full(3, 40, dtype=np.int64))
+    for n in (300, 20, 0, 500):
+        directions = rng.normal(size=(30, 3))
+        directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+        rays = (np.sort(rng.integers(0, 30, n)), rng.integers(0, 60, n), rng.uniform(0.5, 6.0, n), directions)
+        weight = rng.choice([0.0, 1.0, 2.5], 30)
+        grid.vote(rays, positions, weight, 0.2)
+        voted = grid.voted
+        assert len(np.unique(voted)) == len(voted)
+        np.testing.assert_array_equal(np.sort(voted), np.flatnonzero(grid.accumulator))
+        fresh = _Grid(lo, hi, 0.15, np.full(3, 40, dtype=np.int64))
+        fresh.vote(rays, positions, weight, 0.2)
+        np.testing.assert_array_equal(grid.accumulator, fresh.accumulator)
 
 
 def test_a_views_points_are_the_maps_own_restricted_to_it():
