@@ -354,7 +354,7 @@ class SearchConfig:
     arm_length_ratio: float = 2.0
     peaks: int = 16  # the fine peaks scoring best (at a tolerance spanning a fine voxel) are solved locally
     # with a map's surfaces, the fine peaks' quick solves are scored with what they hide while what they
-    # explain unhidden (a bound) reaches this fraction of the best so far (``search._screen``)
+    # explain unhidden (a bound) reaches this fraction of the best so far (``search.screen``)
     screen_fraction: float = 0.7
     # a rotation candidate from vanishing directions is off by up to about this: scoring and solving a peak
     # start at a tolerance that covers it
@@ -400,10 +400,11 @@ class DecideConfig:
     # fraction of it (the paper's overlap test)
     min_cover: float = 0.5
     # copies of the best pose's matched corners elsewhere in the map (``copies.py``), under each rotation
-    # searched: those where corners holding this share of them agree on a camera centre, this many per
-    # rotation, are solved and are rivals (copies sharing fewer are left to the search)
+    # searched: where corners holding this share of them agree on a camera centre (copies sharing fewer are
+    # left to the search); each is scored where it stands, and this many, the best by what the surfaces hide
+    # from them (``search.screen``), are solved and are rivals
     copy_share: float = 0.4
-    copies_per_rotation: int = 2
+    copies: int = 16
     # ... and so is the best pose orbited by these angles (up, down, left, right) round the point at its
     # median depth ahead, solved from there: the slope of the valley where a turn and a shift compensate
     orbit_deg: tuple[float, ...] = (3.0, 6.0)

@@ -16,6 +16,7 @@ from __future__ import annotations
 from collections.abc import Sequence
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from .camera import Camera
 from .config import DecideConfig
@@ -38,10 +39,11 @@ def copy_starts(
     regions: Sequence[tuple[np.ndarray, np.ndarray]] | None = None,
 ) -> list[tuple[np.ndarray, float, float]]:
     """Returns (start cam_from_world, size_m, share) of the copies of a pose's matched corners: under each
-    (3, 3) rotation in ``rotations`` (and the pose's own), the camera centres on which corners holding at
-    least ``copy_share`` of the matched corners' weight agree, up to ``copies_per_rotation`` of them, best
-    first, each known to within ``size_m``; the pose itself (closer than ``distinct_fraction`` of its depth
-    at its own rotation) is left out.
+    (3, 3) rotation in ``rotations`` (and the pose's own), every camera centre on which corners holding at
+    least ``copy_share`` of the matched corners' weight agree, best first, each known to within ``size_m``;
+    the pose itself (closer than ``distinct_fraction`` of its depth at its own rotation) is left out. A
+    window lattice gives many (each bay's shift shares nearly all corners): which of them are rivals is the
+    score's to say (``pipeline.copy_rivals``), not the share's.
 
     matched: (M,) bool map segments the pose matched; map_pts, signatures: the map's corners and their arm
     codes (``search.map_signatures``); arm_angle_deg: how far a turned arm may be from a map direction;
@@ -90,14 +92,7 @@ def copy_starts(
                 continue
         own = rotation_error_deg(S, np.eye(3)) < config.distinct_angle_deg
         for centre, share in _agreements(
-            centres,
-            k,
-            weight,
-            total,
-            voxel,
-            config.copy_share,
-            config.copies_per_rotation,
-            c if own else None,
+            centres, k, weight, total, voxel, config.copy_share, c if own else None
         ):
             out.append((make_cam_from_world(R_copy, -R_copy @ centre), voxel, share))
     out.sort(key=lambda s: -s[2])
@@ -160,13 +155,12 @@ def _agreements(
     total: float,
     voxel: float,
     min_share: float,
-    count: int,
     exclude: np.ndarray | None,
 ) -> list[tuple[np.ndarray, float]]:
-    """Returns up to ``count`` (centre, share) where the (P, 3) ``centres`` of distinct points ``k`` agree
-    within a voxel, holding at least ``min_share`` of the ``total`` weight, best first and each at least
-    two voxels from a better one (and from ``exclude``): every centre votes in the 8 voxels nearest to it,
-    so any two closer than a voxel on each axis share one; a point counts once per voxel."""
+    """Returns every (centre, share) where the (P, 3) ``centres`` of distinct points ``k`` agree within a
+    voxel, holding at least ``min_share`` of the ``total`` weight, best first and each at least two voxels
+    from a better one (and from ``exclude``): every centre votes in the 8 voxels nearest to it, so any two
+    closer than a voxel on each axis share one; a point counts once per voxel."""
     base = np.floor(centres / voxel - 0.5).astype(np.int64)
     base -= base.min(axis=0)
     side = base.max(axis=0) + 2
@@ -179,16 +173,32 @@ def _agreements(
     ids, inverse = np.unique(once // n, return_inverse=True)
     votes = np.bincount(inverse, weights=weight[once % n], minlength=len(ids))
     pair = first // 8  # the pair (row of ``centres``) behind each (voxel, point) vote
+    ranked = np.argsort(-votes, kind="stable")
+    ranked = ranked[votes[ranked] / total >= min_share]
+    if len(ranked) == 0:
+        return []
+    # each voxel's centre: the median of the centres of its votes' pairs, all voxels at once
+    by_voxel = np.argsort(inverse, kind="stable")
+    bounds = np.r_[0, np.cumsum(np.bincount(inverse, minlength=len(ids)))]
+    counts = bounds[ranked + 1] - bounds[ranked]
+    offsets = np.r_[0, np.cumsum(counts)[:-1]]
+    rows = pair[by_voxel[np.repeat(bounds[ranked] - offsets, counts) + np.arange(counts.sum())]]
+    group = np.repeat(np.arange(len(ranked)), counts)
+    medians = np.empty((len(ranked), 3))
+    for axis in range(3):
+        values = centres[rows, axis][np.lexsort((centres[rows, axis], group))]
+        low, high = values[offsets + (counts - 1) // 2], values[offsets + counts // 2]
+        medians[:, axis] = np.where(counts % 2 == 1, low, 0.5 * (low + high))
+    # best first, each kept unless closer than two voxels to one kept before it (or to ``exclude``)
+    radius = np.nextafter(2.0 * voxel, 0.0)
+    near = cKDTree(medians).query_ball_point(medians, radius)
+    dropped = np.zeros(len(ranked), dtype=bool)
+    if exclude is not None:
+        dropped |= np.linalg.norm(medians - exclude, axis=1) < 2 * voxel
     out: list[tuple[np.ndarray, float]] = []
-    for v in np.argsort(-votes, kind="stable"):
-        share = float(votes[v]) / total
-        if share < min_share or len(out) >= count:
-            break
-        members = pair[inverse == v]  # a pair of each point voting in this voxel
-        centre = np.median(centres[members], axis=0)
-        if exclude is not None and np.linalg.norm(centre - exclude) < 2 * voxel:
+    for i in range(len(ranked)):
+        if dropped[i]:
             continue
-        if any(np.linalg.norm(centre - o) < 2 * voxel for o, _ in out):
-            continue
-        out.append((centre, share))
+        dropped[near[i]] = True
+        out.append((medians[i], float(votes[ranked[i]]) / total))
     return out

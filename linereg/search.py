@@ -125,7 +125,7 @@ def search(
     screened = [
         (s[1], r, s[0], size) for s, (_, r, _, size) in zip(solved, peaks, strict=True) if s is not None
     ]
-    best = _screen(screened, config, seen_score)
+    best = screen(screened, config, seen_score)
     starts = [(pose, 0.5 * size) for _, _, pose, size in best]
     solved = solve_all(starts, image, lines3d, camera, config, score_config, visible)
     found = [
@@ -140,7 +140,7 @@ def search(
 _Screened = tuple[Score, int, np.ndarray, float]  # (score, rotation, pose, voxel size) of a quick solve
 
 
-def _screen(
+def screen(
     screened: list[_Screened], config: SearchConfig, seen_score: Callable[[np.ndarray], Score] | None
 ) -> list[_Screened]:
     """Returns the ``peaks`` quick solves to solve fully: the best scoring, by ``seen_score`` where given.

@@ -12,7 +12,7 @@ from linereg.camera import Camera
 from linereg.config import RegisterConfig
 from linereg.geometry import camera_center, make_cam_from_world, pose_errors, rotation_from_vector
 from linereg.score import Score, image_lines, project_clipped, project_segments, score_pose
-from linereg.search import _FineGrids, _Grid, _peaks, _screen, _top_pooled, solve_locally, transform_depths
+from linereg.search import _FineGrids, _Grid, _peaks, _top_pooled, screen, solve_locally, transform_depths
 from linereg.sim.synthetic import clip_to_box, paper_scene
 
 
@@ -188,11 +188,11 @@ def test_the_screen_ranks_by_what_the_surfaces_hide_and_skips_only_poses_that_ca
         return score(hidden[k], hidden[k])
 
     config = replace(RegisterConfig().search, peaks=4, screen_fraction=0.7)
-    kept = _screen(screened, config, seen_score)
+    kept = screen(screened, config, seen_score)
     assert [round(p[2][2, 3]) for p in kept] == [0, 2, 1, 3]
     assert calls == [0, 1, 2]
     assert [p[0].value for p in kept[:3]] == [95.0, 60.0, 30.0]
-    unseen = _screen(screened, config, None)  # a map without surfaces: the scores as they are
+    unseen = screen(screened, config, None)  # a map without surfaces: the scores as they are
     assert [round(p[2][2, 3]) for p in unseen] == [1, 2, 3, 4]
 
 
