@@ -343,3 +343,25 @@ def test_frames_between_fixes_start_where_the_fixes_and_the_odometry_put_them():
     for k, T in start.items():
         rot, pos, _ = pose_errors(T, truth[k])
         assert pos < 1e-3 and rot < 1e-2, k
+
+
+def test_tracker_does_not_claim_a_track_whose_fixes_keep_landing_off_its_predictions():
+    # odometry overshooting 3.5 cm every step (its covariance says ~1 cm): each fix alone passes the
+    # innovation gate, but five in a row lie farther from their predictions than the gate over five allows,
+    # and from then on the track is not claimed; with the window test off every frame is
+    line_map, truth, frames = _scene(12)
+    relative, _ = _odometry(truth)
+    claims = {}
+    for window in (TrackingConfig().consistency_window, 0):
+        tracker = Tracker(line_map, CAMERA, TrackingConfig(consistency_window=window))
+        tracker.start_at(truth[0], sigma_rot_deg=0.1, sigma_pos_m=0.005)
+        assert tracker.step(frames[0]).success
+        results = []
+        for k in range(1, len(frames)):
+            lying = relative[k - 1].copy()
+            lying[:3, 3] += [0.0, 0.0, 0.035]
+            results.append(tracker.step(frames[k], lying))
+        assert all(r.success or "track disagrees" in r.reason for r in results)
+        claims[window] = [r.success for r in results]
+    assert all(claims[0])
+    assert all(claims[5][:3]) and not any(claims[5][6:])
