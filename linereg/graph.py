@@ -10,6 +10,7 @@ gtsam's tangent of that relative pose, (rotation rad, translation m) in the fram
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
+from functools import lru_cache
 
 import gtsam
 import numpy as np
@@ -181,8 +182,9 @@ def fuse(
     return from_pose3(pose), 0.5 * (covariance + covariance.T)
 
 
+@lru_cache(maxsize=256)
 def chi2_quantile(probability: float, dof: int) -> float:
-    """Returns the chi-square quantile (scipy)."""
+    """Returns the chi-square quantile (scipy; remembered: the tracker asks for the same few every step)."""
     from scipy.stats import chi2
 
     return float(chi2.ppf(probability, dof))

@@ -13,7 +13,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
-from functools import partial
+from functools import cache, partial
 from typing import TypeVar
 
 import numpy as np
@@ -248,14 +248,16 @@ def decide(
             # (two scores: tested before the refinement below)
             if sharp is None:
                 sharp = fine_value(view, image, camera, best.cam_from_world, config)
-            if sharp_dismisses(
-                best.score.value, sharp, partial(refined_fine_value, view, image, camera, T, config), dc
-            ):
+            refined_T = cache(partial(refined_pose, view, image, camera, T, config))  # once, if needed
+            rival_sharp = partial(refined_fine_value, view, image, camera, T, refined_T, config)
+            if sharp_dismisses(best.score.value, sharp, rival_sharp, dc):
                 continue
             # a pose that the refinement takes back to the best is the best answer less well placed, not
             # another one (a turn and a shift that compensate along the lines' depth keep the score); a
             # turn of the whole projection is tested as a turn (the turn test's point is that it need not dip)
-            if T is not turned[0] and in_basin(best.cam_from_world, T, image, view, camera, config):
+            if T is not turned[0] and in_basin(
+                best.cam_from_world, T, image, view, camera, config, refined_T()
+            ):
                 continue
             # a rival within the margin: the best pose is still the answer if what it explains beyond the
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
@@ -326,11 +328,22 @@ def in_basin(
     view: MapView,
     camera: Camera,
     config: RegisterConfig,
+    back: np.ndarray | None = None,
 ) -> bool:
-    """Returns True if refining the pose ``other`` (``refine_pose``) ends where the pose ``best`` is, not
-    distinct from it (``differs``): one answer, found twice."""
-    back = refine_pose(image, view.segments, camera, other, config.refine, config.score, view.visible)
-    return not differs(back.cam_from_world, best, view.segments, config.decide)
+    """Returns True if refining the pose ``other`` (``refined_pose``; ``back``: that refinement, when
+    already made) ends where the pose ``best`` is, not distinct from it (``differs``): one answer, found
+    twice."""
+    back = refined_pose(view, image, camera, other, config) if back is None else back
+    return not differs(back, best, view.segments, config.decide)
+
+
+def refined_pose(
+    view: MapView, image: ImageLines, camera: Camera, cam_from_world: np.ndarray, config: RegisterConfig
+) -> np.ndarray:
+    """Returns the (4, 4) pose a rival refines to (``refine_pose``, as the best was refined)."""
+    return refine_pose(
+        image, view.segments, camera, cam_from_world, config.refine, config.score, view.visible
+    ).cam_from_world
 
 
 def fine_value(
@@ -342,17 +355,19 @@ def fine_value(
 
 
 def refined_fine_value(
-    view: MapView, image: ImageLines, camera: Camera, cam_from_world: np.ndarray, config: RegisterConfig
+    view: MapView,
+    image: ImageLines,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    back: Callable[[], np.ndarray],
+    config: RegisterConfig,
 ) -> float:
-    """Returns ``fine_value`` of a rival refined as the best was (``refine_pose``): a rival is judged at its
-    own best fit. The copies and the search's poses come from a few Gauss-Newton steps on pairs taken at a
-    loose tolerance; unrefined, a 180-degree twin scoring 126 % of the best lay a pixel off its lines and
-    was dismissed as less precise (seed 2's synthetic walk, frame 280: the best, the twin of the truth, was
-    claimed)."""
-    refined = refine_pose(
-        image, view.segments, camera, cam_from_world, config.refine, config.score, view.visible
-    )
-    return max(fine_value(view, image, camera, T, config) for T in (cam_from_world, refined.cam_from_world))
+    """Returns the better ``fine_value`` of a rival and of ``back()``, its refinement (``refined_pose``): a
+    rival is judged at its own best fit. The copies and the search's poses come from a few Gauss-Newton
+    steps on pairs taken at a loose tolerance; unrefined, a 180-degree twin scoring 126 % of the best lay a
+    pixel off its lines and was dismissed as less precise (seed 2's synthetic walk, frame 280: the best,
+    the twin of the truth, was claimed)."""
+    return max(fine_value(view, image, camera, T, config) for T in (cam_from_world, back()))
 
 
 def fine_config(config: RegisterConfig) -> ScoreConfig:

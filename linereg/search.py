@@ -258,9 +258,9 @@ class _Grid:
     """A voxel grid of votes over a box: accumulator, the ids of the image and the map point that voted
     last in each voxel (one vote per image point and voxel, and per map point and voxel; ids start at 1 and
     grow with every vote pass, so stamps are never reset: 0 is no vote), and the voxels voted in, in the
-    order they were first voted (a ray crosses a few hundred of millions of voxels: clearing the votes and
-    finding their peaks reads only those). All start as zeros, which the system maps lazily: a grid costs
-    the memory its rays reach."""
+    order they were first voted (the rays reach 1-2 % of the voxels: clearing the votes and finding their
+    peaks reads only those). All start as zeros, which the system maps lazily: a grid costs the memory its
+    rays reach."""
 
     def __init__(self, lo: np.ndarray, hi: np.ndarray, voxel: float, dims: np.ndarray) -> None:
         self.lo, self.hi, self.voxel, self.dims = lo, hi, voxel, dims
@@ -607,8 +607,9 @@ def _vote_boxes(
     lam_min: float,
 ) -> None:  # pragma: no cover - numba
     """``_vote_rays`` into each of the grids over boxes [lo[b], hi[b]] of voxels ``voxel[b]`` (rows of
-    ``accumulator``, ``stamp``, ``touched``, and of ``count``); a ray whose stretch stays outside a box's circumscribed sphere skips that
-    box's exact test (it cannot cross the box), so every grid gets the votes ``_vote_rays`` would give it."""
+    ``accumulator``, ``stamp``, ``stamp_map`` and ``touched``, entries of ``count``); a ray whose stretch
+    stays outside a box's circumscribed sphere skips that box's exact test (it cannot cross the box), so
+    every grid gets the votes ``_vote_rays`` would give it."""
     centre = 0.5 * (lo + hi)
     radius2 = np.empty(len(lo))
     for b in range(len(lo)):  # (half diagonal)^2, with room for rounding

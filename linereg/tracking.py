@@ -352,9 +352,10 @@ class Tracker:
         self, tracked: Registration, predicted: np.ndarray, step: np.ndarray | None, cov: np.ndarray | None
     ) -> str:
         """Returns why a fix is not claimed ("" when it is): its pose lies farther from the prediction than
-        ``gate_probability`` of the predicted distribution allows (the chi-square innovation gate). The fix
-        still enters the graph (refusing it outright strands the tracker when the covariances are
-        optimistic); the frame is reported with the graph's pose, ``success=False``."""
+        ``gate_probability`` of the predicted distribution allows (the chi-square innovation gate), or the
+        track's last ``consistency_window`` fixes, this one included (noted here), lie beyond the gate over
+        them. The fix still enters the graph (refusing it outright strands the tracker when the covariances
+        are optimistic); the frame is reported with the graph's pose, ``success=False``."""
         p = self.config.sequence.gate_probability
         if not p or step is None or cov is None:
             return ""
