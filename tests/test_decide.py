@@ -5,7 +5,13 @@ import numpy as np
 
 import linereg
 from linereg.config import RegisterConfig
-from linereg.geometry import camera_center, make_cam_from_world, rotation_error_deg, rotation_from_vector
+from linereg.geometry import (
+    camera_center,
+    make_cam_from_world,
+    orbited,
+    rotation_error_deg,
+    rotation_from_vector,
+)
 from linereg.localization import map_view
 from linereg.pipeline import fine_value, in_basin, turned_rival, view_score
 from linereg.score import image_lines, project_clipped, score_pose, score_projected, shifted_values
@@ -254,3 +260,52 @@ def test_a_pose_its_data_pin_only_to_an_orbit_is_not_an_answer():
             assert rotation_error_deg(result.cam_from_world[:3, :3], truth[:3, :3]) < 1.0
         else:
             assert result.reason.startswith("ambiguous: the pose is determined to")
+
+
+def test_a_rival_scoring_at_least_the_best_is_never_set_aside_as_less_precise():
+    """The sharpness rule breaks ties below the best: a rival scoring less, where the best keeps its score at
+    the finer distance and the rival does not, is a less precise fit; a rival scoring as much or more is an
+    ambiguity whatever the finer distance says (the two scales disagree on which pose is better)."""
+    dc = RegisterConfig().decide
+    asked: list[bool] = []
+
+    def fine_rival() -> float:
+        asked.append(True)
+        return 100.0
+
+    assert linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, fine_rival, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 1000.0, 800.0, fine_rival, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 1200.0, 800.0, fine_rival, dc)
+    assert len(asked) == 1  # the rival's finer score is computed only when it can decide
+    # the best not sharp (it keeps less than sharp_keep of its score), or the rival as sharp: no dismissal
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 400.0, fine_rival, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, lambda: 790.0, dc)
+
+
+def test_precision_compares_fits_of_the_same_map_lines_or_of_an_accurate_map(camera):
+    """A grid wall 10 m away (lines 1 m apart; each 8 m long, so a shifted view sees the same lines): the
+    truth orbited by half a degree explains each image line with the same map line, a fit of the same
+    lines; the truth shifted by one grid step explains them with the next map lines, a copy. With a map
+    placing its lines to 5 cm (4 px at 10 m, beyond the finer distance's 1 px) the copy's precision is the
+    map's there and no evidence; with an exact map it is."""
+    lines3d = wall_grid(1.0)
+    truth = look_at(np.array([0.3, 0.0, 0.1]), np.array([0.3, 10.0, 0.1]))
+    lines2d, _ = project_clipped(lines3d, camera, truth, 0.05)
+    config = RegisterConfig()
+    image = image_lines(lines2d, camera, config.score)
+    mine = score_pose(image, lines3d, camera, truth, config.score).matches(config.decide.min_cover)
+    orbit = orbited(truth, 10.0, rotation_from_vector(np.radians([0.0, 0.5, 0.0])))
+    shifted = look_at(np.array([1.3, 0.0, 0.1]), np.array([1.3, 10.0, 0.1]))
+    copy = score_pose(image, lines3d, camera, shifted, config.score)
+    assert (
+        copy.value
+        >= (1.0 - config.decide.margin) * score_pose(image, lines3d, camera, truth, config.score).value
+    )
+
+    def evidence(pose: np.ndarray, accuracy_m: float) -> bool:
+        theirs = score_pose(image, lines3d, camera, pose, config.score).matches(config.decide.min_cover)
+        return linereg.pipeline.precision_is_evidence(theirs, mine, accuracy_m, 10.0, camera, config)
+
+    assert evidence(orbit, 0.05) and evidence(orbit, 0.0)
+    assert not evidence(shifted, 0.05)
+    assert evidence(shifted, 0.0) and evidence(shifted, 0.01)  # 0.8 px at 10 m: resolved
