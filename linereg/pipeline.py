@@ -252,11 +252,14 @@ def decide(
                 sharp = fine_value(view, image, camera, best.cam_from_world, config)
             refined_T = cache(partial(refined_pose, view, image, camera, T, config))  # once, if needed
             rival_sharp = partial(refined_fine_value, view, image, camera, T, refined_T, config)
-            theirs, theirs_seen = known or view_score(view, image, camera, T, config.score)
-            evidence = precision_is_evidence(
-                theirs.matches(dc.min_cover), matches, view.accuracy_m, depth, camera, config
-            )
-            if evidence and sharp_dismisses(best.score.value, value, sharp, rival_sharp, dc):
+            # its occlusion-aware (Score, seen): for the precision test if it needs it, else the advantage test
+            their = cache(lambda T=T, known=known: known or view_score(view, image, camera, T, config.score))
+
+            def evidence(their: Callable[[], tuple[Score, np.ndarray]] = their) -> bool:
+                theirs = their()[0].matches(dc.min_cover)
+                return precision_is_evidence(theirs, matches, view.accuracy_m, depth, camera, config)
+
+            if sharp_dismisses(best.score.value, value, sharp, rival_sharp, evidence, dc):
                 continue
             # a pose that the refinement takes back to the best is the best answer less well placed, not
             # another one (a turn and a shift that compensate along the lines' depth keep the score); a
@@ -269,6 +272,7 @@ def decide(
             # rival is more than chance (the image segments the rival leaves unexplained), and what the
             # rival explains beyond the best is not: else each holds evidence the other lacks (on a
             # cluttered real map a wrong pose's chance matches pass the first test, the truth's the second)
+            theirs, theirs_seen = their()
             over = advantage_nfa(
                 best.cam_from_world, best.score, seen[order[0]][1], theirs, image, camera, config, space
             )
@@ -576,20 +580,26 @@ def precision_is_evidence(
 
 
 def sharp_dismisses(
-    best: float, rival: float, fine_best: float, fine_rival: Callable[[], float], dc: DecideConfig
+    best: float,
+    rival: float,
+    fine_best: float,
+    fine_rival: Callable[[], float],
+    evidence: Callable[[], bool],
+    dc: DecideConfig,
 ) -> bool:
     """Returns True if a rival inside the margin is a less precise fit than the best: it scores less than
-    the best (``rival`` < ``best``), and at ``sharp_fraction`` of the score's distance the best (there
-    ``fine_best``) keeps ``sharp_keep`` of its score and the rival (there ``fine_rival()``, scored only when
-    needed) falls below ``(1 - margin)`` of it.
+    the best (``rival`` < ``best``), at ``sharp_fraction`` of the score's distance the best (there
+    ``fine_best``) keeps ``sharp_keep`` of its score, precision tells the two apart (``evidence()``:
+    ``precision_is_evidence``) and the rival (there ``fine_rival()``) falls below ``(1 - margin)`` of it.
+    The callables run only when the tests before them pass, cheapest first.
 
     A rival scoring at least the best at the score's own distance is never set aside so: the two scales then
     disagree on which pose is better, and that is an ambiguity, not a precision. (Where a simulated scan
     places edges a few cm off, a facade copy one lattice step from the truth held its lines closer than
     the truth did, and the truth, scoring 101 % of the copy, was dismissed: seed 3's synthetic walk.)"""
-    if rival >= best:
+    if rival >= best or fine_best < dc.sharp_keep * best or not evidence():
         return False
-    return fine_best >= dc.sharp_keep * best and fine_rival() < (1.0 - dc.margin) * fine_best
+    return fine_rival() < (1.0 - dc.margin) * fine_best
 
 
 def _orbit_starts(

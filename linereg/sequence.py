@@ -23,7 +23,7 @@ import logging
 import time
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from functools import partial
+from functools import cache, partial
 
 import gtsam
 import numpy as np
@@ -228,8 +228,9 @@ def rival_test(
     the map explain nearly as much, the alignment is chance) and the fix orbited round the point it looks
     at, solved locally (``pipeline.orbit_rivals``: a turn and a shift that compensate along a facade, where
     a refinement stops wherever its start lies). A rival is set aside where the fix is sharp and the rival
-    is not, where that is evidence (``pipeline.sharp_dismisses``, ``pipeline.precision_is_evidence``). ~15 ms on 2 cores (18 on one). A refused fix leaves the frame
-    to the search near its prediction (``relocalize``: search and decision).
+    is not, where that is evidence (``pipeline.sharp_dismisses``, ``pipeline.precision_is_evidence``).
+    ~15 ms on 2 cores (18 on one). A refused fix leaves the frame to the search near its prediction
+    (``relocalize``: search and decision).
 
     A fix that passes is moved along its valley to the most precise of its orbits that are the same answer
     (``pipeline.differs``) and score within the margin: refined again from the one scoring most at
@@ -252,6 +253,8 @@ def rival_test(
     def fine_value(T: np.ndarray) -> float:
         return score_pose(image, segments, camera, T, fine, visible).value
 
+    sharp = cache(partial(fine_value, T0))  # the fix's, asked for by the rivals and the move below
+
     def passed() -> Registration:
         same = [
             T
@@ -260,7 +263,7 @@ def rival_test(
         ]
         if not same:
             return fix
-        mine = fine_value(T0)
+        mine = sharp()
         value, start = max(((fine_value(T), T) for T in same), key=lambda r: r[0])
         if value <= mine:
             return fix
@@ -272,19 +275,19 @@ def rival_test(
 
     scores = {id(T): s for T, s in orbits}
     depth = depth_of(segments[fix.matches[:, 1]], T0) if len(fix.matches) else 1.0
-    sharp: float | None = None
     for T, value in rivals:
         if value < (1.0 - dc.margin) * fix.score:
             return passed()
         if T is not turned[0] and not differs(T, T0, segments, dc):
             continue
-        if sharp is None:
-            sharp = fine_value(T0)
-        theirs = scores.get(id(T)) or score_pose(image, segments, camera, T, rc.score, visible)
-        evidence = precision_is_evidence(
-            theirs.matches(dc.min_cover), fix.matches, line_map.accuracy_m, depth, camera, rc
-        )
-        if evidence and sharp_dismisses(fix.score, value, sharp, partial(fine_value, T), dc):
+
+        def evidence(T: np.ndarray = T) -> bool:
+            theirs = scores.get(id(T)) or score_pose(image, segments, camera, T, rc.score, visible)
+            return precision_is_evidence(
+                theirs.matches(dc.min_cover), fix.matches, line_map.accuracy_m, depth, camera, rc
+            )
+
+        if sharp_dismisses(fix.score, value, sharp(), partial(fine_value, T), evidence, dc):
             continue
         turn = rotation_error_deg(T[:3, :3], T0[:3, :3])
         shift = float(np.linalg.norm(camera_center(T) - camera_center(T0)))

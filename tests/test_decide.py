@@ -273,13 +273,13 @@ def test_a_rival_scoring_at_least_the_best_is_never_set_aside_as_less_precise():
         asked.append(True)
         return 100.0
 
-    assert linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, fine_rival, dc)
-    assert not linereg.pipeline.sharp_dismisses(1000.0, 1000.0, 800.0, fine_rival, dc)
-    assert not linereg.pipeline.sharp_dismisses(1000.0, 1200.0, 800.0, fine_rival, dc)
+    assert linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, fine_rival, lambda: True, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 1000.0, 800.0, fine_rival, lambda: True, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 1200.0, 800.0, fine_rival, lambda: True, dc)
     assert len(asked) == 1  # the rival's finer score is computed only when it can decide
     # the best not sharp (it keeps less than sharp_keep of its score), or the rival as sharp: no dismissal
-    assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 400.0, fine_rival, dc)
-    assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, lambda: 790.0, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 400.0, fine_rival, lambda: True, dc)
+    assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, lambda: 790.0, lambda: True, dc)
 
 
 def test_precision_compares_fits_of_the_same_map_lines_or_of_an_accurate_map(camera):
