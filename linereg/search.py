@@ -808,6 +808,8 @@ def _solve_rounds(
 
 def _pixels_moved(lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarray, size_m: float) -> float:
     """Returns how many pixels a camera shift of ``size_m`` moves a map point at the median depth in view."""
+    if size_m == 0.0:  # no depth needed (the local solve's second pass)
+        return 0.0
     depth = transform_depths(lines3d, cam_from_world)
     depth = depth[depth > 0.1]
     median = float(np.median(depth)) if len(depth) else 1.0

@@ -111,3 +111,30 @@ def test_every_copy_is_returned_and_the_rivals_solved_are_the_best_scoring():
     (T, _), *rest = copy_rivals(pose, score, view, image, CAMERA, config, [pose[:3, :3]], regions)
     assert not rest
     assert np.linalg.norm(camera_center(T) - [2.0, 60.0, 1.5]) < 0.1
+
+
+def test_agreements_count_exactly_what_reaches_the_share():
+    """The voxels a copy's share cannot reach are skipped by a bound: what is left is exactly what counting
+    every voxel gives, for any share (a voxel is only ever set aside by a better one)."""
+    from linereg.copies import _agreements
+
+    rng = np.random.default_rng(4)
+    for trial in range(6):
+        k = rng.integers(0, 40, 3000)
+        clumps = rng.uniform(-20, 20, (5, 3))
+        centres = np.where(
+            (rng.random(3000) < 0.5)[:, None],
+            clumps[rng.integers(0, 5, 3000)] + rng.normal(0, 0.3, (3000, 3)),
+            rng.uniform(-30, 30, (3000, 3)),
+        )
+        weight = rng.uniform(0.5, 2.0, 40)
+        total = float(weight.sum())
+        every = _agreements(centres, k, weight, total, 1.0, 0.0, None)
+        for share in (0.05, 0.2, 0.5):
+            kept = _agreements(centres, k, weight, total, 1.0, share, None)
+            expected = [(c, s) for c, s in every if s >= share]
+            assert len(kept) == len(expected), (trial, share)
+            for (c, s), (c_all, s_all) in zip(kept, expected, strict=True):
+                np.testing.assert_array_equal(c, c_all)
+                assert s == s_all
+    assert any(s >= 0.2 for _, s in every)  # the clumps hold copies the bound must keep

@@ -187,6 +187,9 @@ def test_potentially_visible_never_misses(line_map, rng):
                 seen = ~hits_before(centre, p, faces, 0.05 + 0.02 * np.linalg.norm(p - centre, axis=1))
                 if seen.any():
                     assert k in pvs, (k, centre)
+        again = lm.potentially_visible(lo, hi)  # a cached union: the same rows, not to be written to
+        np.testing.assert_array_equal(again, pvs)
+        assert not again.flags.writeable
     # from right behind the box, the wall's lines straight behind it are hidden from every point
     pvs = lm.potentially_visible([4.0, -0.3, 0.3], [5.0, 0.3, 0.6])
     assert len(pvs) < len(lm) and culled > 0

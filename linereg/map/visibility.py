@@ -26,6 +26,8 @@ from ..config import VisibilityConfig
 from ..geometry import camera_center
 from .surfaces import Surfaces
 
+UNIONS_KEPT = 64  # cached unions of cell sets (``potentially_visible``): a tracker's boxes of recent frames
+
 
 class Visibility:
     """Visibility queries over (M, 6) float64 ``segments`` and the ``surfaces`` (or None) that may hide
@@ -41,6 +43,8 @@ class Visibility:
         self._occluders: tuple[np.ndarray, np.ndarray] | None = None
         self._pieces: tuple[np.ndarray, np.ndarray] | None = None
         self._pvs: dict[tuple[int, ...], np.ndarray] = {}
+        # the unions of the cells of a box, newest last: a tracker asks for the same few boxes each frame
+        self._unions: dict[tuple[int, ...], np.ndarray] = {}
 
     # ------------------------------------------------------------------------------------ one camera
 
@@ -126,16 +130,24 @@ class Visibility:
             return np.arange(len(self.segments))
         size = self.cell_m()
         c0, c1 = np.floor(lo / size).astype(np.int64), np.floor(hi / size).astype(np.int64)
-        cells = np.stack(np.meshgrid(*[np.arange(i, j + 1) for i, j in zip(c0, c1, strict=True)]), -1)
-        cells = cells.reshape(-1, 3)
-        if len(cells) > 27:  # a big box: one test of the box rounded out to cells (still conservative)
+        if np.prod(c1 - c0 + 1) > 27:  # a big box: one test of the box rounded out to cells (conservative)
             return self._box_set((*c0, *c1), c0 * size, (c1 + 1) * size)
-        sets = [self._box_set((*c, *c), c * size, (c + 1) * size) for c in cells]
-        return np.unique(np.concatenate(sets))
+        key = (*c0, *c1)
+        if key not in self._unions:
+            cells = np.stack(np.meshgrid(*[np.arange(i, j + 1) for i, j in zip(c0, c1, strict=True)]), -1)
+            sets = [self._box_set((*c, *c), c * size, (c + 1) * size) for c in cells.reshape(-1, 3)]
+            if len(self._unions) >= UNIONS_KEPT:
+                self._unions.pop(next(iter(self._unions)), None)
+            union = np.unique(np.concatenate(sets))
+            union.setflags(write=False)
+            self._unions[key] = union
+        return self._unions[key]
 
     def _box_set(self, key: tuple[int, ...], lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
         if key not in self._pvs:
-            self._pvs[key] = self._not_hidden(lo, hi)
+            rows = self._not_hidden(lo, hi)
+            rows.setflags(write=False)  # shared by every caller
+            self._pvs[key] = rows
         return self._pvs[key]
 
     def _not_hidden(self, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
