@@ -33,6 +33,7 @@ from .rotation import refine_candidates, rotation_candidates, single_direction_c
 from .score import ImageLines, Score, image_lines, project_clipped, score_pose, shifted_values
 from .search import Found, MapSignatures, map_signatures, screen, search, solve_all
 from .significance import SearchSpace, chance_probabilities, depth_of, log10_tail
+from .threads import map_threads
 from .timing import StageTimer
 from .vanishing import vanishing_directions
 
@@ -522,10 +523,12 @@ def copy_rivals(
         config.search.arm_angle_deg, dc, regions,
     )  # fmt: skip
     inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
-    standing = [
-        (score_pose(image, view.segments, camera, T, config.score, view.visible), -1, T, size)
-        for T, size in inside
-    ]
+
+    def where_it_stands(start: tuple[np.ndarray, float]) -> Score:
+        return score_pose(image, view.segments, camera, start[0], config.score, view.visible)
+
+    scores = map_threads(where_it_stands, inside, config.search.max_threads)  # each copy's own
+    standing = [(score, -1, T, size) for score, (T, size) in zip(scores, inside, strict=True)]
     seen = None if view.parts is None else lambda T: view_score(view, image, camera, T, config.score)[0]
     kept = screen(standing, replace(config.search, peaks=dc.copies), seen)
     orbits = _orbit_starts(cam_from_world, view.segments[matched], dc)

@@ -28,7 +28,7 @@ from .geometry import camera_center, invert, line_coefficients, make_cam_from_wo
 from .line_factor import LineProjection
 from .points import Points
 from .score import ImageLines, Score, grow, one_to_one_pairs, score_pose
-from .threads import run_parallel, thread_count
+from .threads import map_threads, run_parallel, thread_count
 
 log = logging.getLogger(__name__)
 
@@ -199,16 +199,11 @@ def solve_all(
 ) -> list[tuple[np.ndarray, Score] | None]:
     """Returns ``solve_locally`` of each (start pose, size) in order, the starts shared among threads as
     the rotations are (the compiled kernels release the GIL; each result depends on its start alone)."""
-    out: list[tuple[np.ndarray, Score] | None] = [None] * len(starts)
-    workers = thread_count(min(config.max_threads, len(starts)))
 
-    def solve(worker: int) -> None:
-        for i in range(worker, len(starts), workers):
-            pose, size = starts[i]
-            out[i] = solve_locally(image, lines3d, camera, pose, size, config, score_config, visible)
+    def solve(start: tuple[np.ndarray, float]) -> tuple[np.ndarray, Score] | None:
+        return solve_locally(image, lines3d, camera, *start, config, score_config, visible)
 
-    run_parallel(solve, workers)
-    return out
+    return map_threads(solve, starts, config.max_threads)
 
 
 @dataclass(frozen=True)

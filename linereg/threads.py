@@ -15,6 +15,7 @@ import cv2
 
 A = TypeVar("A")
 B = TypeVar("B")
+T = TypeVar("T")
 
 
 def thread_count(limit: int) -> int:
@@ -58,3 +59,17 @@ def both(first: Callable[[], A], second: Callable[[], B]) -> tuple[A, B]:
 
     run_parallel(run, 2)
     return out[0], out[1]
+
+
+def map_threads(f: Callable[[T], A], items: list[T], limit: int) -> list[A]:
+    """Returns ``[f(item) for item in items]``, the items dealt among up to ``limit`` threads
+    (``thread_count``; for work that releases the GIL and whose result depends on its item alone)."""
+    out: list[Any] = [None] * len(items)
+    workers = thread_count(min(limit, len(items)))
+
+    def run(worker: int) -> None:
+        for i in range(worker, len(items), workers):
+            out[i] = f(items[i])
+
+    run_parallel(run, workers)
+    return out
