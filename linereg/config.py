@@ -176,6 +176,18 @@ class SensorEdgesConfig:
 
 
 @dataclass(frozen=True)
+class IntensityEdgesConfig:
+    """Steps of a single sweep's intensity along its scan rings (``map.intensity_edges``): road markings,
+    paint, signs; lines through them are linked and fitted as ``SensorEdgesConfig`` says."""
+
+    window: int = 2  # points averaged on each side of a gap along the ring
+    contrast: float = 0.3  # a step of at least this share of the sweep's 5-95 % intensity range ...
+    noise_sigmas: float = 4.0  # ... and this many of its own noise (returns scatter along a ring)
+    # neighbours whose ranges differ by more than this share are on different surfaces: no step between
+    max_range_step_fraction: float = 0.05
+
+
+@dataclass(frozen=True)
 class PointEdgesConfig:
     """Edges of an evenly sampled cloud found per point (``map.point_edges``): where the surface bends or
     ends, then grouped into lines along the scene's directions (small structure: furniture, frames)."""
@@ -222,6 +234,10 @@ class MapBuildConfig:
     # other values than their defaults are kept as given
     adapt: bool = True
     sensor_edges: bool = True  # occluding contours and ring edges where the sensor origin is known
+    # steps of the intensity along a single sweep's rings (``map.intensity_edges``), when the cloud has an
+    # intensity per point: off by default (the paper's maps are untextured)
+    intensity_edges: bool = False
+    intensity: IntensityEdgesConfig = field(default_factory=IntensityEdgesConfig)
     # edges found per point (``map.point_edges``); None: for dense RGB-D fusions (``build.POINT_EDGE_KINDS``),
     # whose points have round neighbourhoods a few cm across; a scanner's rings and range falloff do not
     point_edges: bool | None = None

@@ -43,7 +43,17 @@ _COLMAP_MODELS = {
 
 def read_cloud(path: str | os.PathLike) -> np.ndarray:
     """Returns the (P, 3) float64 points of a .ply, .pcd, .xyz / .txt, .las / .laz or .e57 file."""
-    path = Path(path)
+    return _read(Path(path), with_intensity=False)[0]
+
+
+def read_cloud_intensity(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray | None]:
+    """Returns ((P, 3) float64 points, (P,) float64 their intensity or None when the file has none) of a
+    cloud file (``read_cloud``'s formats): a PLY or PCD ``intensity`` property, LAS intensity, an E57
+    ``intensity`` field, the fourth of a text file's four columns (x y z i)."""
+    return _read(Path(path), with_intensity=True)
+
+
+def _read(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
     suffix = path.suffix.lower()
     if suffix not in CLOUD_SUFFIXES:
         raise FileFormatError(
@@ -53,20 +63,25 @@ def read_cloud(path: str | os.PathLike) -> np.ndarray:
     reader = {".ply": _read_open3d, ".pcd": _read_open3d, ".xyz": _read_text, ".txt": _read_text}.get(suffix)
     reader = reader or {".las": _read_las, ".laz": _read_las, ".e57": _read_e57}[suffix]
     try:
-        points = reader(path)
+        points, intensity = reader(path, with_intensity)
     except FileFormatError:
         raise
     except Exception as e:  # each library has its own exceptions for a corrupt file
         raise FileFormatError(f"{path}: cannot read point cloud: {e}") from None
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if intensity is not None:
+        intensity = np.asarray(intensity, dtype=np.float64).reshape(-1)
+        if len(intensity) != len(points):
+            raise FileFormatError(f"{path}: {len(intensity)} intensities for {len(points)} points")
     if len(points) == 0:
         raise FileFormatError(f"{path}: the point cloud holds no points (empty or corrupt file)")
     finite = np.isfinite(points).all(axis=1)
     if not finite.all():
         logger.warning("%s: dropped %d points with NaN or inf coordinates", path, int((~finite).sum()))
         points = points[finite]
+        intensity = None if intensity is None else intensity[finite]
     logger.info("%s: %d points", path, len(points))
-    return points
+    return points, intensity
 
 
 def _check_readable(path: Path) -> None:
@@ -82,7 +97,7 @@ def _check_readable(path: Path) -> None:
         raise FileFormatError(f"{path}: empty file")
 
 
-def _read_open3d(path: Path) -> np.ndarray:
+def _read_open3d(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
     from ._open3d import open3d
 
     o3d = open3d()
@@ -92,7 +107,12 @@ def _read_open3d(path: Path) -> np.ndarray:
     points = np.asarray(cloud.points, dtype=np.float64)
     if expected is not None and len(points) != expected:
         raise FileFormatError(f"{path}: corrupt PLY: header declares {expected} vertices, read {len(points)}")
-    return points
+    intensity = None
+    if with_intensity:  # the legacy cloud holds no intensity: the tensor reader keeps every property
+        attributes = o3d.t.io.read_point_cloud(str(path)).point
+        if "intensity" in attributes:
+            intensity = attributes["intensity"].numpy().astype(np.float64).reshape(-1)
+    return points, intensity
 
 
 _PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2}
@@ -135,16 +155,26 @@ def _ply_vertex_count(path: Path) -> int:
     return count
 
 
-def _read_text(path: Path) -> np.ndarray:
+def _read_text(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported as empty below
+        if with_intensity:  # x y z i: exactly four columns (six are x y z r g b)
+            for delimiter in (None, ","):
+                try:
+                    rows = np.loadtxt(path, comments=("#", "//"), ndmin=2, delimiter=delimiter)
+                except ValueError:
+                    continue
+                if rows.shape[1] == 4:
+                    return rows[:, :3], rows[:, 3]
+                break
         try:
-            return np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
+            points = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
         except ValueError:  # comma-separated
-            return np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, delimiter=",")
+            points = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, delimiter=",")
+        return points, None
 
 
-def _read_las(path: Path) -> np.ndarray:
+def _read_las(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
     import laspy
 
     if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
@@ -152,22 +182,31 @@ def _read_las(path: Path) -> np.ndarray:
             f"{path}: reading .laz needs a LAZ backend for laspy; install one: pip install 'laspy[lazrs]'"
         )
     las = laspy.read(path)
-    return np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
+    points = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
+    return points, np.asarray(las.intensity, dtype=np.float64) if with_intensity else None
 
 
-def _read_e57(path: Path) -> np.ndarray:
+def _read_e57(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
     import pye57
 
     e57 = pye57.E57(str(path))
     try:
-        scans = []
+        scans, values = [], []
         for i in range(e57.scan_count):
             # transform=True applies each scan's pose: every scan lands in the common (world) frame
-            data = e57.read_scan(i, transform=True, ignore_missing_fields=True)
+            data = e57.read_scan(i, intensity=with_intensity, transform=True, ignore_missing_fields=True)
             scans.append(np.stack([data["cartesianX"], data["cartesianY"], data["cartesianZ"]], axis=1))
+            value = data.get("intensity") if with_intensity else None
+            values.append(None if value is None else np.asarray(value, dtype=np.float64).reshape(-1))
     finally:
         e57.close()
-    return np.concatenate(scans) if scans else np.zeros((0, 3))
+    points = np.concatenate(scans) if scans else np.zeros((0, 3))
+    # every scan must carry it, or the cloud has none
+    have = bool(values) and all(
+        v is not None and len(v) == len(p) for v, p in zip(values, scans, strict=True)
+    )
+    intensity = np.concatenate([v for v in values if v is not None]) if have else None
+    return points, intensity
 
 
 # ---------------------------------------------------------------------------------------------- images

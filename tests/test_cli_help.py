@@ -60,5 +60,5 @@ def test_map_help_examples_on_their_own_lines(capsys):
     lines = help_of(capsys, ("map",)).splitlines()
     build = [line for line in lines if line.strip().startswith("linereg map build ")]
     info = [line for line in lines if line.strip().startswith("linereg map info ")]
-    assert len(build) == 1 and len(info) == 1
-    assert ".linemap" in build[0] and info[0].split()[-1].endswith(".linemap")
+    assert len(build) == 2 and len(info) == 1  # a scan; a sweep with its road markings
+    assert all(".linemap" in line for line in build) and info[0].split()[-1].endswith(".linemap")

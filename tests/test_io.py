@@ -293,3 +293,44 @@ def test_camera_for_image(tmp_path):
     assert io.camera_for_image(cameras, Path("sub/c.png")) is shared  # by path as given
     with pytest.raises(InvalidInputError, match=r"cams\.json: no camera for image d\.png"):
         io.camera_for_image(cameras, tmp_path / "d.png", "cams.json")
+
+
+def test_intensity_is_read_where_the_file_has_it(tmp_path, cloud, rng):
+    import laspy
+
+    from linereg._open3d import open3d
+
+    o3d = open3d()
+    value = rng.uniform(0, 1, len(cloud)).astype(np.float32)
+    pcd = o3d.t.geometry.PointCloud(o3d.core.Tensor(cloud.astype(np.float32)))
+    pcd.point["intensity"] = o3d.core.Tensor(value[:, None])
+    for name in ("c.ply", "c.pcd"):
+        assert o3d.t.io.write_point_cloud(str(tmp_path / name), pcd)
+        points, intensity = io.read_cloud_intensity(tmp_path / name)
+        np.testing.assert_allclose(points, cloud, atol=1e-4)
+        np.testing.assert_allclose(intensity, value, atol=1e-6)
+    np.savetxt(tmp_path / "i.xyz", np.c_[cloud, value])  # x y z i
+    np.testing.assert_allclose(io.read_cloud_intensity(tmp_path / "i.xyz")[1], value, atol=1e-6)
+    np.savetxt(tmp_path / "rgb.xyz", np.c_[cloud, np.ones((len(cloud), 3))])  # x y z r g b: no intensity
+    assert io.read_cloud_intensity(tmp_path / "rgb.xyz")[1] is None
+    _write_open3d(tmp_path / "bare.ply", cloud)
+    points, intensity = io.read_cloud_intensity(tmp_path / "bare.ply")
+    assert intensity is None and len(points) == len(cloud)
+    header = laspy.LasHeader(point_format=3, version="1.2")
+    header.offsets, header.scales = cloud.min(axis=0), np.array([0.001, 0.001, 0.001])
+    las = laspy.LasData(header)
+    las.x, las.y, las.z = cloud[:, 0], cloud[:, 1], cloud[:, 2]
+    las.intensity = (value * 1000).astype(np.uint16)
+    las.write(tmp_path / "c.las")
+    np.testing.assert_array_equal(
+        io.read_cloud_intensity(tmp_path / "c.las")[1], (value * 1000).astype(np.uint16)
+    )
+
+
+def test_points_dropped_for_nan_take_their_intensity_along(tmp_path, cloud):
+    rows = np.c_[cloud, np.arange(len(cloud), dtype=np.float64)]
+    rows[7, 1] = np.nan
+    np.savetxt(tmp_path / "n.xyz", rows)
+    points, intensity = io.read_cloud_intensity(tmp_path / "n.xyz")
+    assert len(points) == len(cloud) - 1 and 7 not in intensity
+    np.testing.assert_allclose(points, np.delete(cloud, 7, axis=0))

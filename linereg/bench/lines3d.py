@@ -37,12 +37,13 @@ ANGLE_DEG = 2.0
 STEP_M = 0.02
 MIN_COVER = 0.5
 SCANNED_RADIUS_M = 0.15  # the scan's point spacing reaches ~13 cm at 30 m (0.25 deg rays)
-_CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(sys.argv[1], sys.argv[2], sys.argv[3])"
+_CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(sys.argv[1], sys.argv[2], *sys.argv[3:])"
 
 
-def child_main(points_path: str, map_path: str, overrides: str = "{}") -> None:
-    """Runs ``LineMap.build`` on the points of an .npy file with MapBuildConfig fields overridden by a JSON
-    object (nested per section); prints JSON (seconds, RSS KiB), saves the map."""
+def child_main(points_path: str, map_path: str, overrides: str = "{}", intensity_path: str = "") -> None:
+    """Runs ``LineMap.build`` on the points of an .npy file (and their intensities, another .npy, if given)
+    with MapBuildConfig fields overridden by a JSON object (nested per section); prints JSON (seconds, RSS
+    KiB), saves the map."""
     import resource
     import time
 
@@ -50,10 +51,11 @@ def child_main(points_path: str, map_path: str, overrides: str = "{}") -> None:
     from ..map.linemap import LineMap
 
     points = np.load(points_path)
+    intensity = np.load(intensity_path) if intensity_path else None
     config = MapBuildConfig.from_dict(json.loads(overrides))
     before = resource.getrusage(resource.RUSAGE_SELF)
     start = time.perf_counter()
-    line_map = LineMap.build(points, config)
+    line_map = LineMap.build(points, config, intensity=intensity)
     seconds = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_SELF)
     cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
@@ -63,17 +65,31 @@ def child_main(points_path: str, map_path: str, overrides: str = "{}") -> None:
     print(json.dumps(stats | {"peak_rss_kib": after.ru_maxrss}))
 
 
-def build_in_child(points: np.ndarray, overrides: dict[str, Any] | None = None) -> tuple[Any, dict[str, Any]]:
+def build_in_child(
+    points: np.ndarray, overrides: dict[str, Any] | None = None, intensity: np.ndarray | None = None
+) -> tuple[Any, dict[str, Any]]:
     """Returns (LineMap, {seconds, cpu_seconds, rss_before_gb, peak_gb}) of ``LineMap.build`` in a child
-    process, with MapBuildConfig fields ``overrides`` (nested per section)."""
+    process, with MapBuildConfig fields ``overrides`` (nested per section) and the points' ``intensity``."""
     from ..errors import LineregError
     from ..map.linemap import LineMap
 
     with tempfile.TemporaryDirectory(prefix="linereg-bench-") as tmp:
         points_path, map_path = Path(tmp) / "points.npy", Path(tmp) / "map.npz"
         np.save(points_path, points)
+        extra = []
+        if intensity is not None:
+            extra = [str(Path(tmp) / "intensity.npy")]
+            np.save(extra[0], intensity)
         proc = subprocess.run(
-            [sys.executable, "-c", _CHILD, str(points_path), str(map_path), json.dumps(overrides or {})],
+            [
+                sys.executable,
+                "-c",
+                _CHILD,
+                str(points_path),
+                str(map_path),
+                json.dumps(overrides or {}),
+                *extra,
+            ],
             capture_output=True,
             text=True,
         )
@@ -236,6 +252,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--no-demo", action="store_true", help="with --real: skip the demo scan")
     parser.add_argument(
+        "--intensity-edges",
+        action="store_true",
+        help="MapBuildConfig(intensity_edges=True): the steps of a sweep's intensity too",
+    )
+    parser.add_argument(
         "--map-config",
         default="{}",
         metavar="JSON",
@@ -258,6 +279,8 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"--map-config: a JSON object of MapBuildConfig fields ({e})") from None
     if args.rectangles:
         overrides.setdefault("lines3d", {})["rectangles"] = True
+    if args.intensity_edges:
+        overrides["intensity_edges"] = True
     results: dict[str, Any] = {"benchmark": "lines3d", "options": {"map_config": overrides}}
     if not (args.real and args.no_demo):
         results |= run_demo(args, overrides)

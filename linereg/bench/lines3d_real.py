@@ -39,8 +39,9 @@ def run_scene(folder: Path, overrides: dict[str, Any], overlay_dir: Path | None)
             print(
                 f"{folder.name}: building the map of {item.cloud_path.name} ...", file=sys.stderr, flush=True
             )
-            cloud = io.read_cloud(item.cloud_path)
-            line_map, cost = build_in_child(cloud, overrides)
+            cloud, intensity = io.read_cloud_intensity(item.cloud_path)
+            wanted = intensity if overrides.get("intensity_edges") else None
+            line_map, cost = build_in_child(cloud, overrides, wanted)
             maps[item.cloud_path] = (line_map, cost | {"points": len(cloud)}, cloud)
         line_map, cost, cloud = maps[item.cloud_path]
         camera = item.camera.undistorted()

@@ -190,17 +190,22 @@ def localize_one(
 
 
 def build_map(
-    cloud_path: Path, plane_directions: bool = False, map_config: str | None = None
+    cloud_path: Path,
+    plane_directions: bool = False,
+    map_config: str | None = None,
+    intensity_edges: bool = False,
 ) -> tuple[Any, dict[str, Any]]:
     """Returns (LineMap, record with points, segments and build seconds) of one cloud file; ``map_config``:
-    None (defaults), ``"auto"`` or a JSON object of ``Lines3DConfig`` fields."""
+    None (defaults), ``"auto"`` or a JSON object of ``Lines3DConfig`` fields; ``intensity_edges``: also the
+    steps of the cloud's intensity (``MapBuildConfig.intensity_edges``)."""
     from .. import io
+    from ..config import MapBuildConfig
     from ..map.linemap import LineMap
 
     start = time.perf_counter()
-    points = io.read_cloud(cloud_path)
-    config = lines3d_config(map_config, points)
-    line_map = LineMap.build(points, config)
+    points, intensity = io.read_cloud_intensity(cloud_path)
+    config = MapBuildConfig(lines3d=lines3d_config(map_config, points), intensity_edges=intensity_edges)
+    line_map = LineMap.build(points, config, intensity=intensity if intensity_edges else None)
     if plane_directions:
         line_map = with_plane_directions(line_map, points)
     record = {
@@ -251,6 +256,7 @@ def run_scene(
     plane_directions: bool = False,
     map_config: str | None = None,
     prior: tuple[float, float] | None = None,
+    intensity_edges: bool = False,
 ) -> dict[str, Any]:
     """Returns a scene's map records and image records; maps are built once per distinct cloud file."""
     items = read_scene(folder)
@@ -258,7 +264,9 @@ def run_scene(
     map_records, records = [], []
     for item in items:
         if item.cloud_path not in maps:
-            maps[item.cloud_path], record = build_map(item.cloud_path, plane_directions, map_config)
+            maps[item.cloud_path], record = build_map(
+                item.cloud_path, plane_directions, map_config, intensity_edges
+            )
             map_records.append(record)
             print(
                 f"{folder.name}/{item.cloud_path.name}: {record['num_points']:,} points -> "
@@ -360,6 +368,11 @@ def configure(parser: argparse.ArgumentParser) -> None:
         help="give each search a rough guess of the pose, at most ROT_DEG / POS_M from the truth "
         "(seeded by the image name), as a Prior of those bounds: the camera-LiDAR calibration case",
     )
+    parser.add_argument(
+        "--intensity-edges",
+        action="store_true",
+        help="build the maps with the steps of the clouds' intensity too (single sweeps with an intensity)",
+    )
     parser.add_argument("--max-rot-deg", type=float, default=5.0, help="success bound on R_e (default 5)")
     parser.add_argument(
         "--max-pos-m", type=float, default=0.3, help="success bound on position (default 0.3)"
@@ -380,8 +393,11 @@ def run(args: argparse.Namespace) -> int:
         raise InvalidInputError(f"--prior: ROT_DEG and POS_M must be positive, got {args.prior}")
     prior = None if args.prior is None else (float(args.prior[0]), float(args.prior[1]))
     overlay_dir = args.out if args.overlay else None
+    edges = args.intensity_edges
     scenes = [
-        run_scene(folder, bounds, overlay_dir, args.stages, args.plane_directions, args.map_config, prior)
+        run_scene(
+            folder, bounds, overlay_dir, args.stages, args.plane_directions, args.map_config, prior, edges
+        )
         for folder in folders
     ]
     records = [r for s in scenes for r in s["images"]]
@@ -405,6 +421,7 @@ def run(args: argparse.Namespace) -> int:
         "bounds": {"rotation_deg": bounds[0], "position_m": bounds[1]},
         "plane_directions": args.plane_directions,
         "map_config": args.map_config,
+        "intensity_edges": args.intensity_edges,
         "prior": None if prior is None else {"rotation_deg": prior[0], "position_m": prior[1]},
         "scenes": scenes,
     }

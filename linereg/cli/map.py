@@ -2,6 +2,7 @@
 
 Examples:
   linereg map build scan.e57 -o site.linemap --name site   # clouds: .ply .pcd .xyz .txt .las .laz .e57
+  linereg map build sweep.pcd -o street.linemap --intensity-edges   # + road markings of a LiDAR sweep
   linereg map info site.linemap
 """
 
@@ -9,9 +10,12 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from dataclasses import replace
 from pathlib import Path
+
+import numpy as np
 
 from . import check_output_file, description
 from .progress import Progress
@@ -38,6 +42,20 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     build.add_argument(
         "--plane-voxel", type=float, default=None, metavar="M", help="voxel of local plane fits (m)"
     )
+    build.add_argument(
+        "--sensor-origin",
+        type=float,
+        nargs=3,
+        default=None,
+        metavar=("X", "Y", "Z"),
+        help="where the scanner stood, in the cloud's frame (default: found from a single sweep's rings)",
+    )
+    build.add_argument(
+        "--intensity-edges",
+        action="store_true",
+        help="also extract the steps of the cloud's intensity along a single sweep's rings (road markings, "
+        "paint; the cloud must carry an intensity per point)",
+    )
     build.add_argument("--name", default=None, help="map name (default: the cloud's file name)")
     build.set_defaults(func=run_build)
     info = maps.add_parser("info", help="print a summary of a map file")
@@ -47,9 +65,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from ..config import Lines3DConfig
+    from ..config import Lines3DConfig, MapBuildConfig
     from ..errors import InvalidInputError
-    from ..io import read_cloud
+    from ..io import read_cloud_intensity
     from ..map.linemap import LineMap
 
     if args.voxel < 0 or (args.plane_voxel is not None and args.plane_voxel <= 0):
@@ -61,12 +79,14 @@ def run_build(args: argparse.Namespace) -> int:
     with Progress(len(STAGES), "map build", log_steps=True) as progress:
         progress.update(0, "read")
         start = time.perf_counter()
-        points = read_cloud(args.cloud)
+        points, intensity = read_cloud_intensity(args.cloud)
         line_map = LineMap.build(
             points,
-            config,
+            MapBuildConfig(lines3d=config, intensity_edges=args.intensity_edges),
             name=args.name or args.cloud.stem,
             progress=lambda stage: progress.update(1, stage),
+            sensor_origin=None if args.sensor_origin is None else np.array(args.sensor_origin),
+            intensity=intensity if args.intensity_edges else None,
             source=str(args.cloud),
         )
         progress.update(1, "write")
@@ -77,6 +97,8 @@ def run_build(args: argparse.Namespace) -> int:
         f"{args.output}: {len(line_map)} segments, {len(line_map.clusters)} clusters "
         f"from {len(points):,} points in {seconds:.1f} s"
     )
+    for note in line_map.metadata.get("notes", []):
+        print(f"note: {note}", file=sys.stderr)
     return 0
 
 

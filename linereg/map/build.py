@@ -4,6 +4,8 @@
 2. Planar regions (``planes``), their boundaries and creases, their surfaces as a mesh (``lines3d``).
 3. Where the sensor origin is known and the cloud is a single sweep with rings: occluding contours and
    ring-curvature edges (``sensor_edges``), those not already along a plane's edge.
+   With ``MapBuildConfig.intensity_edges`` and an intensity per point, also the steps of the intensity
+   along the rings (``intensity_edges``: road markings, paint).
 4. In a dense RGB-D fusion: edges found per point where the surface bends or ends, along the directions
    of the scene's frame of dominant planes (``point_edges``: small structure no planar region holds),
    those not already along a plane's edge. A cloud without such a frame gets none.
@@ -49,6 +51,7 @@ class MapContent(NamedTuple):
     reason: str
     plane_normals: np.ndarray = np.zeros((0, 3))
     plane_areas: np.ndarray = np.zeros(0)
+    notes: tuple[str, ...] = ()  # what was asked for and could not be done (e.g. intensity edges, no rings)
 
 
 def extract_map(
@@ -56,12 +59,23 @@ def extract_map(
     config: MapBuildConfig | None = None,
     sensor_origin: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
+    intensity: np.ndarray | None = None,
 ) -> MapContent:
     """Returns the MapContent of (P, 3) float64 points (their frame); ``sensor_origin`` (3,): where the
     scanner stood, if known (a single sweep in its sensor's frame has it at the origin: found by its
-    rings). ``progress(stage)`` is called as the stages profile, normals, regions, lines start."""
+    rings); ``intensity`` (P,): each point's return intensity, if the cloud has one (used only with
+    ``config.intensity_edges``; NaN: none). ``progress(stage)`` is called as the stages profile, normals,
+    regions, lines start."""
     config = config or MapBuildConfig()
     points = check_points(points)
+    if intensity is not None:
+        intensity = np.asarray(intensity, dtype=np.float64).reshape(-1)
+        if len(intensity) != len(points):
+            from ..errors import InvalidInputError
+
+            raise InvalidInputError(
+                f"intensity must hold one value per point: {len(intensity)} for {len(points)} points"
+            )
     if sensor_origin is not None:
         sensor_origin = np.asarray(sensor_origin, dtype=np.float64).reshape(3)
         if not np.isfinite(sensor_origin).all():
@@ -86,8 +100,16 @@ def extract_map(
     with ThreadPoolExecutor(max_workers=1) as pool:
         run = pool.submit if thread_count(2) > 1 else _now
         sensed = None
-        if config.sensor_edges and sensor is not None and profile.rings:
-            sensed = run(_sensor_edges, points, offset, profile, sensor, config)
+        notes: tuple[str, ...] = ()
+        with_intensity = config.intensity_edges and intensity is not None
+        if config.intensity_edges and not with_intensity:
+            notes += ("intensity edges: the cloud has no intensity",)
+        elif with_intensity and (sensor is None or not profile.rings):
+            notes += ("intensity edges: found only along a single sweep's rings, and this cloud has none",)
+        if (config.sensor_edges or with_intensity) and sensor is not None and profile.rings:
+            sensed = run(
+                _sensor_edges, points, intensity if with_intensity else None, offset, profile, sensor, config
+            )
         planes = segment_planes(local, lines_config, progress)
         edges = None
         if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
@@ -113,20 +135,40 @@ def extract_map(
     # the mesh was made in the local frame: the map frame is local + offset
     surfaces = shift_surfaces(surfaces, offset) if len(surfaces) else empty_surfaces()
     areas = planes.counts * planes.spacing_m**2
+    for note in notes:
+        logger.warning(note)
     return MapContent(
-        segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas
-    )
+        segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas,
+        notes,
+    )  # fmt: skip
 
 
 def _sensor_edges(
-    points: np.ndarray, offset: np.ndarray, profile: CloudProfile, sensor: np.ndarray, config: MapBuildConfig
+    points: np.ndarray,
+    intensity: np.ndarray | None,
+    offset: np.ndarray,
+    profile: CloudProfile,
+    sensor: np.ndarray,
+    config: MapBuildConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((K, 6) local segments, (K,) int8 kinds) of a sweep's occluding contours and ring-curvature
-    edges (``sensor_edges``) of its (P, 3) points in the map frame, ``offset`` their local origin."""
+    edges (``sensor_edges``, if ``config.sensor_edges``) and of its (P,) ``intensity``'s steps
+    (``intensity_edges``, when given) of its (P, 3) points in the map frame, ``offset`` their local origin."""
+    from .intensity_edges import intensity_edges
     from .sensor_edges import sensor_edges
 
     ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
-    return sensor_edges(points - offset, ring, sensor, config.sensor)
+    local = points - offset
+    found, found_kind = np.zeros((0, 6)), np.zeros(0, np.int8)
+    if config.sensor_edges:
+        found, found_kind = sensor_edges(local, ring, sensor, config.sensor)
+    if intensity is not None:
+        steps = intensity_edges(local, intensity, ring, sensor, config.intensity, config.sensor)
+        # a step along a geometric edge is that edge (the paint ends where the kerb does)
+        steps = steps[~along(steps, found, np.full(len(steps), config.sensor.along_plane_m), 10.0)]
+        found = np.concatenate([found, steps])
+        found_kind = np.r_[found_kind, np.full(len(steps), kinds.INTENSITY, np.int8)]
+    return found, found_kind
 
 
 def _point_edges(

@@ -92,20 +92,23 @@ class LineMap:
         parallel_config: ParallelConfig | None = None,
         progress: Callable[[str], None] | None = None,
         sensor_origin: np.ndarray | None = None,
+        intensity: np.ndarray | None = None,
         **metadata: Any,
     ) -> LineMap:
         """Returns the map of (P, 3) float64 points (``build.extract_map``: parameters from the cloud's
         profile, segments with their kinds, surfaces), then clusters. A ``Lines3DConfig`` is the base whose
         default-valued fields the profile chooses. ``sensor_origin`` (3,): where the scanner stood, if
-        known. ``progress(stage)`` is called as stages start (profile, normals, regions, lines, clusters).
-        An empty map says why in ``metadata["empty_reason"]``.
+        known. ``intensity`` (P,): each point's return intensity, for ``MapBuildConfig.intensity_edges``
+        (``io.read_cloud_intensity`` reads it). ``progress(stage)`` is called as stages start (profile,
+        normals, regions, lines, clusters). An empty map says why in ``metadata["empty_reason"]``; what was
+        asked for and could not be done is in ``metadata["notes"]``.
         """
         from .build import extract_map
 
         if isinstance(config, Lines3DConfig):
             config = MapBuildConfig(lines3d=config)
         config = config or MapBuildConfig()
-        content = extract_map(points, config, sensor_origin, progress)
+        content = extract_map(points, config, sensor_origin, progress, intensity)
         extra: dict[str, Any] = {
             "point_count": content.profile.num_points,
             "profile": content.profile.as_dict(),
@@ -113,6 +116,8 @@ class LineMap:
         }
         if content.reason:
             extra["empty_reason"] = content.reason
+        if content.notes:
+            extra["notes"] = list(content.notes)
         planes = (content.plane_normals, content.plane_areas) if config.plane_directions else None
         return cls.from_segments(
             content.segments,

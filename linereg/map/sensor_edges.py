@@ -33,16 +33,27 @@ def sensor_edges(
     (-1: none) scanned from (3,) ``sensor``."""
     config = config or SensorEdgesConfig()
     index, kind = edge_points(points, ring, sensor, config)
-    if len(index) < config.min_points:
-        return np.zeros((0, 6)), np.zeros(0, np.int8)
-    groups = _link(points[index], ring[index], sensor, config)
     segments, segment_kinds = [], []
-    for members in groups:
-        for line, inliers in _lines(points[index[members]], sensor, config):
-            segments.append(line)
-            occluding = (kind[members][inliers] == kinds.OCCLUDING).mean() >= 0.5
-            segment_kinds.append(kinds.OCCLUDING if occluding else kinds.RING_EDGE)
+    for line, members in lines_across_rings(points[index], ring[index], sensor, config):
+        segments.append(line)
+        occluding = (kind[members] == kinds.OCCLUDING).mean() >= 0.5
+        segment_kinds.append(kinds.OCCLUDING if occluding else kinds.RING_EDGE)
     return np.array(segments).reshape(-1, 6), np.array(segment_kinds, dtype=np.int8)
+
+
+def lines_across_rings(
+    p: np.ndarray, ring: np.ndarray, sensor: np.ndarray, config: SensorEdgesConfig
+) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Returns ((6,) segment, (k,) int64 indices of its points) of the straight lines through (n, 3) edge
+    points of (n,) rings seen from (3,) ``sensor``: points of neighbouring rings linked (``_link``), each
+    linked group cut into lines (``_lines``)."""
+    if len(p) < config.min_points:
+        return []
+    out = []
+    for members in _link(p, ring, sensor, config):
+        for line, inliers in _lines(p[members], sensor, config):
+            out.append((line, members[inliers]))
+    return out
 
 
 def edge_points(

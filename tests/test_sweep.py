@@ -1,0 +1,86 @@
+"""A single spinning-LiDAR sweep (``sim.sweep``): its profile, the edges seen from its sensor
+(``map.sensor_edges``) and, when asked, the steps of its intensity (``map.intensity_edges``)."""
+
+import numpy as np
+import pytest
+
+from linereg import LineMap
+from linereg.config import MapBuildConfig
+from linereg.errors import InvalidInputError
+from linereg.map import kinds
+from linereg.map.profile import profile_cloud
+from linereg.sim.sweep import box_quads, ground_quad, spinning_sweep
+
+GROUND = -1.7  # the sensor 1.7 m above the road, at the origin of its own frame
+PAINT_Y = (-2.3, -2.0)  # a 30 cm road marking running ahead of the car, from 4 to 14 m
+
+
+@pytest.fixture(scope="module")
+def sweep():
+    quads = np.concatenate(
+        [
+            ground_quad(GROUND, 60.0),
+            ground_quad(GROUND + 0.002, 0.0, x=(4.0, 14.0), y=PAINT_Y),  # paint, a hair above the road
+            box_quads((10.0, 2.0, GROUND), (20.0, 12.0, GROUND + 8.0)),  # a building beside the road
+        ]
+    )
+    reflectance = np.r_[0.15, 0.8, np.full(6, 0.4)]
+    return spinning_sweep(quads, reflectance, np.random.default_rng(0))
+
+
+def _on_line(segments, point, direction, tol_m, tol_deg):
+    """(K,) bool: both ends within tol_m of the line through point along direction, parallel to it."""
+    d = direction / np.linalg.norm(direction)
+    out = np.ones(len(segments), dtype=bool)
+    for end in (segments[:, :3], segments[:, 3:]):
+        rel = end - point
+        out &= np.linalg.norm(rel - np.outer(rel @ d, d), axis=1) <= tol_m
+    u = segments[:, 3:] - segments[:, :3]
+    u /= np.linalg.norm(u, axis=1, keepdims=True)
+    return out & (np.abs(u @ d) >= np.cos(np.radians(tol_deg)))
+
+
+def test_a_sweep_is_profiled_as_one_with_rings_about_its_sensor(sweep):
+    points, _, _ = sweep
+    profile = profile_cloud(points)
+    assert profile.kind == "lidar_sweep"
+    np.testing.assert_allclose(profile.sensor_origin, [0.0, 0.0, 0.0], atol=0.05)
+    assert profile.rings >= 40  # the lasers that hit something (the highest pass over the roof)
+
+
+def test_the_buildings_corner_and_foot_are_found(sweep):
+    points, _, _ = sweep
+    line_map = LineMap.build(points)
+    segments = line_map.segments
+    corner = _on_line(segments, np.array([10.0, 2.0, 0.0]), np.array([0.0, 0.0, 1.0]), 0.05, 3.0)
+    foot = _on_line(segments, np.array([10.0, 2.0, GROUND]), np.array([1.0, 0.0, 0.0]), 0.05, 3.0)
+    assert corner.any() and foot.any()
+    assert not (line_map.kinds == kinds.INTENSITY).any()  # untextured unless asked
+
+
+def test_intensity_edges_follow_the_paint_when_asked(sweep):
+    points, intensity, _ = sweep
+    line_map = LineMap.build(points, MapBuildConfig(intensity_edges=True), intensity=intensity)
+    found = line_map.segments[line_map.kinds == kinds.INTENSITY]
+    along_x = np.array([1.0, 0.0, 0.0])
+    for y in PAINT_Y:  # each long edge of the marking, most of its 10 m
+        on = _on_line(found, np.array([0.0, y, GROUND]), along_x, 0.05, 2.0)
+        assert on.any(), y
+        assert np.linalg.norm(found[on, 3:] - found[on, :3], axis=1).max() >= 7.0
+    # nothing else: the road's and the walls' own noise is no edge, the walls' foot is a geometric one
+    on_paint = _on_line(found, np.array([0.0, PAINT_Y[0], GROUND]), along_x, 0.05, 2.0)
+    on_paint |= _on_line(found, np.array([0.0, PAINT_Y[1], GROUND]), along_x, 0.05, 2.0)
+    assert on_paint.all()
+
+
+def test_intensity_edges_say_why_there_are_none(sweep):
+    points, intensity, _ = sweep
+    no_values = LineMap.build(points, MapBuildConfig(intensity_edges=True))
+    assert not (no_values.kinds == kinds.INTENSITY).any()
+    assert "no intensity" in " ".join(no_values.metadata["notes"])
+    # an evenly sampled patch has no rings to step along
+    grid = np.stack(np.meshgrid(np.arange(0, 3, 0.02), np.arange(0, 3, 0.02), [0.0]), -1).reshape(-1, 3)
+    flat = LineMap.build(grid, MapBuildConfig(intensity_edges=True), intensity=grid[:, 0] > 1.5)
+    assert "rings" in " ".join(flat.metadata["notes"])
+    with pytest.raises(InvalidInputError, match="intensity"):
+        LineMap.build(points, MapBuildConfig(intensity_edges=True), intensity=intensity[:-1])
