@@ -84,6 +84,51 @@ def _read(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | No
     return points, intensity
 
 
+def read_sensor_origin(path: str | os.PathLike) -> np.ndarray | None:
+    """Returns (3,) where the scanner stood, in the cloud's frame, when the file says so, else None: a PCD
+    header's ``VIEWPOINT`` (the default identity viewpoint says nothing), an E57 file of one scan (its
+    pose's translation; a file of several scans has several origins). PLY, LAS and text files hold none."""
+    path = Path(path)
+    _check_readable(path)
+    suffix = path.suffix.lower()
+    try:
+        if suffix == ".pcd":
+            return _pcd_viewpoint(path)
+        if suffix == ".e57":
+            import pye57
+
+            e57 = pye57.E57(str(path))
+            try:
+                if e57.scan_count != 1:
+                    return None
+                return np.asarray(e57.scan_position(0), dtype=np.float64).reshape(3)
+            finally:
+                e57.close()
+    except FileFormatError:
+        raise
+    except Exception as e:  # a corrupt header
+        raise FileFormatError(f"{path}: cannot read the scanner position: {e}") from None
+    return None
+
+
+def _pcd_viewpoint(path: Path) -> np.ndarray | None:
+    """Returns the translation of a PCD header's VIEWPOINT (tx ty tz qw qx qy qz), None if absent or the
+    default (0 0 0 1 0 0 0)."""
+    with open(path, "rb") as f:
+        for _ in range(64):  # a PCD header is a dozen lines, ended by DATA
+            line = f.readline()
+            words = line.decode("ascii", "replace").split()
+            if not line or words[:1] == ["DATA"]:
+                return None
+            if words[:1] == ["VIEWPOINT"]:
+                values = np.array([float(w) for w in words[1:8]])
+                if len(values) != 7 or not np.isfinite(values).all():
+                    raise FileFormatError(f"{path}: a PCD VIEWPOINT needs 7 numbers, got {words[1:]}")
+                default = np.array([0.0, 0, 0, 1, 0, 0, 0])
+                return None if np.array_equal(values, default) else values[:3]
+    return None
+
+
 def _check_readable(path: Path) -> None:
     if not path.exists():
         raise FileFormatError(f"{path}: no such file")

@@ -334,3 +334,36 @@ def test_points_dropped_for_nan_take_their_intensity_along(tmp_path, cloud):
     points, intensity = io.read_cloud_intensity(tmp_path / "n.xyz")
     assert len(points) == len(cloud) - 1 and 7 not in intensity
     np.testing.assert_allclose(points, np.delete(cloud, 7, axis=0))
+
+
+def test_the_scanner_position_is_read_where_the_file_holds_it(tmp_path, cloud):
+    import pye57
+
+    _write_open3d(tmp_path / "c.pcd", cloud)
+    assert io.read_sensor_origin(tmp_path / "c.pcd") is None  # open3d writes the identity viewpoint
+    text = (
+        (tmp_path / "c.pcd")
+        .read_bytes()
+        .replace(b"VIEWPOINT 0 0 0 1 0 0 0", b"VIEWPOINT 1.5 -2 0.25 1 0 0 0")
+    )
+    (tmp_path / "v.pcd").write_bytes(text)
+    np.testing.assert_allclose(io.read_sensor_origin(tmp_path / "v.pcd"), [1.5, -2.0, 0.25])
+    np.testing.assert_allclose(io.read_cloud(tmp_path / "v.pcd"), cloud, atol=1e-4)  # the points as stored
+    for count in (1, 2):  # one scan: its pose says where the scanner stood; two scans: two places
+        path = tmp_path / f"s{count}.e57"
+        e57 = pye57.E57(str(path), mode="w")
+        for k in range(count):
+            data = {f"cartesian{a}": cloud[:, i].copy() for i, a in enumerate("XYZ")}
+            e57.write_scan_raw(
+                data, rotation=np.array([1.0, 0, 0, 0]), translation=np.array([3.0 + k, 4.0, 1.5])
+            )
+        e57.close()
+        origin = io.read_sensor_origin(path)
+        if count == 1:
+            np.testing.assert_allclose(origin, [3.0, 4.0, 1.5])
+        else:
+            assert origin is None
+    _write_open3d(tmp_path / "c.ply", cloud)
+    assert io.read_sensor_origin(tmp_path / "c.ply") is None
+    with pytest.raises(FileFormatError, match="no such file"):
+        io.read_sensor_origin(tmp_path / "missing.pcd")

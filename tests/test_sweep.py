@@ -84,3 +84,27 @@ def test_intensity_edges_say_why_there_are_none(sweep):
     assert "rings" in " ".join(flat.metadata["notes"])
     with pytest.raises(InvalidInputError, match="intensity"):
         LineMap.build(points, MapBuildConfig(intensity_edges=True), intensity=intensity[:-1])
+
+
+def test_map_build_takes_the_scanner_position_from_a_pcd_header(sweep, tmp_path, capsys):
+    """A sweep moved into a site's frame: the PCD's VIEWPOINT says where the sensor stood there, and the
+    rings, the sensor's edges and the intensity edges are found about it."""
+    from linereg._open3d import open3d
+    from linereg.cli import main
+
+    points, intensity, _ = sweep
+    shift = np.array([100.0, -40.0, 5.0])
+    o3d = open3d()
+    cloud = o3d.t.geometry.PointCloud(o3d.core.Tensor(points + shift))
+    cloud.point["intensity"] = o3d.core.Tensor(intensity[:, None])
+    assert o3d.t.io.write_point_cloud(str(tmp_path / "raw.pcd"), cloud, write_ascii=True)
+    text = (tmp_path / "raw.pcd").read_text()
+    assert "VIEWPOINT 0 0 0 1 0 0 0" in text
+    (tmp_path / "site.pcd").write_text(text.replace("VIEWPOINT 0 0 0 1 0 0 0", "VIEWPOINT 100 -40 5 1 0 0 0"))
+    out = tmp_path / "site.linemap"
+    assert main(["map", "build", str(tmp_path / "site.pcd"), "-o", str(out), "--intensity-edges"]) == 0
+    line_map = LineMap.load(out)
+    np.testing.assert_allclose(line_map.metadata["profile"]["sensor_origin"], shift)
+    assert line_map.metadata["profile"]["kind"] == "lidar_sweep"
+    found = line_map.segments[line_map.kinds == kinds.INTENSITY] - np.tile(shift, 2)
+    assert _on_line(found, np.array([0.0, PAINT_Y[0], GROUND]), np.array([1.0, 0, 0]), 0.05, 2.0).any()

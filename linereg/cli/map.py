@@ -48,7 +48,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         nargs=3,
         default=None,
         metavar=("X", "Y", "Z"),
-        help="where the scanner stood, in the cloud's frame (default: found from a single sweep's rings)",
+        help="where the scanner stood, in the cloud's frame (default: a PCD's VIEWPOINT or a one-scan E57's "
+        "pose, else found from a single sweep's rings)",
     )
     build.add_argument(
         "--intensity-edges",
@@ -67,7 +68,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run_build(args: argparse.Namespace) -> int:
     from ..config import Lines3DConfig, MapBuildConfig
     from ..errors import InvalidInputError
-    from ..io import read_cloud_intensity
+    from ..io import read_cloud_intensity, read_sensor_origin
     from ..map.linemap import LineMap
 
     if args.voxel < 0 or (args.plane_voxel is not None and args.plane_voxel <= 0):
@@ -80,12 +81,13 @@ def run_build(args: argparse.Namespace) -> int:
         progress.update(0, "read")
         start = time.perf_counter()
         points, intensity = read_cloud_intensity(args.cloud)
+        origin = args.sensor_origin if args.sensor_origin is not None else read_sensor_origin(args.cloud)
         line_map = LineMap.build(
             points,
             MapBuildConfig(lines3d=config, intensity_edges=args.intensity_edges),
             name=args.name or args.cloud.stem,
             progress=lambda stage: progress.update(1, stage),
-            sensor_origin=None if args.sensor_origin is None else np.array(args.sensor_origin),
+            sensor_origin=None if origin is None else np.asarray(origin, dtype=np.float64),
             intensity=intensity if args.intensity_edges else None,
             source=str(args.cloud),
         )
