@@ -501,19 +501,62 @@ def _shifted_values(
     angle_tol: float,
     weight: float,
 ) -> np.ndarray:
-    """The score value of ``projected`` moved by each shift (``shifted_values``)."""
+    """The score value of ``projected`` moved by each shift (``shifted_values``): the pairs of
+    ``_covering_pairs`` at each shift, found among the pairs that some shift can bring within ``distance``
+    (their boxes within ``distance`` plus the longest shift) at an angle the test can pass (a shift keeps a
+    segment's direction; the test itself is made on the shifted coordinates, as ``_covering_pairs`` does)."""
     out = np.empty(len(shifts))
     moved = np.empty_like(projected)
+    reach = 0.0
+    for k in range(len(shifts)):
+        reach = max(reach, np.hypot(shifts[k, 0], shifts[k, 1]))
+    margin = distance + reach + 1e-6
+    slack = 1e-6  # the angle of a shifted segment may differ from its own in the last bits
+    cand_i = np.empty(len(segments) * len(projected) + 1, np.int64)
+    cand_j = np.empty(len(segments) * len(projected) + 1, np.int64)
+    n_cand = 0
+    for j in range(len(projected)):
+        p = projected[j]
+        dx, dy = p[2] - p[0], p[3] - p[1]
+        angle = np.arctan2(dy, dx) % np.pi
+        x0, x1 = min(p[0], p[2]) - margin, max(p[0], p[2]) + margin
+        y0, y1 = min(p[1], p[3]) - margin, max(p[1], p[3]) + margin
+        for i in range(len(segments)):
+            q = segments[i]
+            if max(q[0], q[2]) < x0 or min(q[0], q[2]) > x1 or max(q[1], q[3]) < y0 or min(q[1], q[3]) > y1:
+                continue
+            gap = abs(angles[i] - angle)
+            if min(gap, np.pi - gap) > max(angle_tol, np.arctan(2.0 * distance / lengths[i])) + slack:
+                continue
+            cand_i[n_cand], cand_j[n_cand] = i, j
+            n_cand += 1
+    pair_i = np.empty(n_cand + 1, np.int64)
+    cover = np.empty((n_cand + 1, 2))
+    seg_angle = np.empty(len(projected))
+    seg_ok = np.empty(len(projected), np.bool_)
     for k in range(len(shifts)):
         for j in range(len(projected)):
             moved[j, 0] = projected[j, 0] + shifts[k, 0]
             moved[j, 1] = projected[j, 1] + shifts[k, 1]
             moved[j, 2] = projected[j, 2] + shifts[k, 0]
             moved[j, 3] = projected[j, 3] + shifts[k, 1]
-        i, _, cover = _covering_pairs(
-            segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, moved, distance, angle_tol
-        )
-        explained = _union_lengths(i, cover, len(segments)).sum()
+            dx, dy = moved[j, 2] - moved[j, 0], moved[j, 3] - moved[j, 1]
+            seg_ok[j] = np.hypot(dx, dy) != 0.0
+            seg_angle[j] = np.arctan2(dy, dx) % np.pi
+        n = 0
+        for c in range(n_cand):
+            i, j = cand_i[c], cand_j[c]
+            if not seg_ok[j]:
+                continue
+            gap = abs(angles[i] - seg_angle[j])
+            if min(gap, np.pi - gap) > max(angle_tol, np.arctan(2.0 * distance / lengths[i])):
+                continue
+            lo, hi = _cover(segments[i], lengths[i], moved[j], distance)
+            if hi > lo:
+                pair_i[n] = i
+                cover[n, 0], cover[n, 1] = lo, hi
+                n += 1
+        explained = _union_lengths(pair_i[:n], cover[:n], len(segments)).sum()
         out[k] = explained - weight * _length_in_cells(moved, empty, cell_px)
     return out
 
