@@ -142,20 +142,6 @@ def score_projected(
     return Score(value, explained, unexplained, pairs, cover)
 
 
-def one_to_one_pairs(
-    image: ImageLines,
-    lines3d: np.ndarray,
-    camera: Camera,
-    cam_from_world: np.ndarray,
-    config: ScoreConfig,
-    visible: np.ndarray | None = None,
-) -> np.ndarray:
-    """Returns ``score_pose(...).one_to_one()`` without the score's sums (a local solve's rounds use only
-    the pairs)."""
-    projected, index = project_clipped(lines3d, camera, cam_from_world, config.min_depth_m, visible)
-    return greedy_pairs(*_pairs_of(image, projected, index, config))
-
-
 def greedy_pairs(pairs: np.ndarray, cover: np.ndarray) -> np.ndarray:
     """Returns (K, 2) int64 of (P, 2) covering pairs (their (P, 2) covered stretches) taken longest cover
     first, each image segment and each map segment in at most one (``Score.one_to_one``)."""

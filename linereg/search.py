@@ -24,10 +24,17 @@ import numpy as np
 
 from .camera import Camera
 from .config import ScoreConfig, SearchConfig
-from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_error_deg
-from .line_factor import LineProjection
+from .geometry import camera_center, invert, make_cam_from_world, rotation_error_deg
 from .points import Points
-from .score import ImageLines, Score, grow, one_to_one_pairs, score_pose
+from .score import (
+    ImageLines,
+    Score,
+    _covering_pairs,
+    _greedy,
+    _project_clipped,
+    grow,
+    score_pose,
+)
 from .threads import map_threads, run_parallel, thread_count
 
 log = logging.getLogger(__name__)
@@ -788,17 +795,87 @@ def _solve_rounds(
     f = max(camera.fx, camera.fy)
     tolerance = score_config.distance_px + _pixels_moved(lines3d, camera, pose, size_m)
     tolerance += f * np.tan(np.radians(config.rotation_slack_deg))  # the rotation candidate's own error
+    # a round (the one-to-one covering pairs at the tolerance, then the pose fitted to them) runs in one
+    # compiled call (``_solve_round``):
+    # the orbit rivals of a tracked frame solve in threads, and the glue between kernels held the GIL
+    segments = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
+    mask = np.ones(len(segments), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
+    size = (float(camera.width), float(camera.height))
+    angle_tol = float(np.radians(score_config.angle_deg + 2.0))
     for _ in range(config.solve_rounds):
-        loose = replace(score_config, distance_px=tolerance, angle_deg=score_config.angle_deg + 2.0)
-        pairs = one_to_one_pairs(image, lines3d, camera, pose, loose, visible)
-        moved = pose_from_pairs(image.segments, lines3d, camera, pose, pairs)
-        if moved is None:
+        world_from_cam = _solve_round(
+            segments, np.ascontiguousarray(pose, dtype=np.float64), intrinsics, *size, score_config.min_depth_m,
+            mask, image.segments, image.angles, image.lengths, image.grid_ptr, image.grid_items, image.grid_w,
+            image.grid_px, tolerance, angle_tol, invert(pose),
+        )  # fmt: skip
+        if world_from_cam is None:
             return None
-        pose = moved
+        pose = invert(world_from_cam)
         if tolerance <= score_config.distance_px:
             break
         tolerance = max(0.5 * tolerance, score_config.distance_px)
     return pose, score_pose(image, lines3d, camera, pose, score_config, visible)
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_round(
+    lines3d: np.ndarray,
+    cam_from_world: np.ndarray,
+    intrinsics: np.ndarray,
+    width: float,
+    height: float,
+    near: float,
+    visible: np.ndarray,
+    segments: np.ndarray,
+    angles: np.ndarray,
+    lengths: np.ndarray,
+    grid_ptr: np.ndarray,
+    grid_items: np.ndarray,
+    grid_w: int,
+    grid_px: float,
+    distance: float,
+    angle_tol: float,
+    world_from_cam: np.ndarray,
+) -> np.ndarray | None:  # pragma: no cover - numba
+    """One round of ``_solve_rounds``: ``one_to_one_pairs`` (projection, covering pairs at ``distance``
+    and ``angle_tol``, longest cover first, one per image and per map segment: ``Score.one_to_one``) and
+    the pose fitted to them
+    (``geometry.line_coefficients``, ``LineProjection.build``, ``_gauss_newton``) from the pose
+    (``world_from_cam`` = its inverse, computed by the caller as those functions do), the same operations
+    in the same order; returns the new world_from_cam or None (fewer than 4 pairs, a singular system)."""
+    projected, index = _project_clipped(lines3d, cam_from_world, intrinsics, width, height, near, visible)
+    i, j, cover = _covering_pairs(
+        segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected, distance, angle_tol
+    )
+    if len(i) < 4:
+        return None
+    order = np.argsort(-(cover[:, 1] - cover[:, 0]), kind="mergesort")  # stable, as greedy_pairs sorts
+    pairs = np.empty((len(i), 2), np.int64)
+    for k in range(len(order)):
+        pairs[k, 0], pairs[k, 1] = i[order[k]], index[j[order[k]]]
+    keep = _greedy(pairs, pairs[:, 0].max() + 1, pairs[:, 1].max() + 1)
+    n = int(keep.sum())
+    if n < 4:
+        return None
+    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
+    points = np.empty((2 * n, 3))
+    a, b, c = np.empty(2 * n), np.empty(2 * n), np.empty(2 * n)
+    m = 0
+    for k in range(len(pairs)):
+        if not keep[k]:
+            continue
+        s = segments[pairs[k, 0]]
+        h0, h1, h2 = s[1] - s[3], s[2] - s[0], s[0] * s[3] - s[1] * s[2]
+        norm = np.sqrt(h0 * h0 + h1 * h1)
+        h0, h1, h2 = h0 / norm, h1 / norm, h2 / norm
+        for e in range(2):
+            for d in range(3):
+                points[2 * m + e, d] = lines3d[pairs[k, 1], 3 * e + d]
+            a[2 * m + e], b[2 * m + e] = h0 * fx, h1 * fy
+            c[2 * m + e] = h0 * cx + h1 * cy + h2
+        m += 1
+    return _gauss_newton(points, a, b, c, 1e-3, world_from_cam, 5)
 
 
 def _pixels_moved(lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarray, size_m: float) -> float:
@@ -816,29 +893,6 @@ def transform_depths(lines3d: np.ndarray, cam_from_world: np.ndarray) -> np.ndar
     return lines3d.reshape(-1, 3) @ cam_from_world[2, :3] + cam_from_world[2, 3]
 
 
-def pose_from_pairs(
-    lines2d: np.ndarray,
-    lines3d: np.ndarray,
-    camera: Camera,
-    cam_from_world: np.ndarray,
-    pairs: np.ndarray,
-    iterations: int = 5,
-) -> np.ndarray | None:
-    """Returns the (4, 4) cam_from_world that puts both ends of each paired map segment on its image
-    segment's line (paper eq. "costs"), by Gauss-Newton with Huber weights at 2 px from ``cam_from_world``;
-    None when the pairs cannot fix the pose (fewer than 4, or a singular system)."""
-    if len(pairs) < 4:
-        return None
-    projection = LineProjection.build(
-        line_coefficients(lines2d[pairs[:, 0]]), lines3d[pairs[:, 1]], camera, min_depth_m=1e-3
-    )
-    p = projection
-    world_from_cam = _gauss_newton(
-        p.points_world, p.a, p.b, p.c, p.min_depth_m, invert(cam_from_world), iterations
-    )
-    return None if world_from_cam is None else invert(world_from_cam)
-
-
 @numba.njit(cache=True, nogil=True)
 def _gauss_newton(
     points: np.ndarray,
@@ -849,7 +903,8 @@ def _gauss_newton(
     world_from_cam: np.ndarray,
     iterations: int,
 ) -> np.ndarray | None:  # pragma: no cover - numba
-    """``pose_from_pairs``'s iterations on a ``LineProjection``'s arrays (its ``evaluate``, with the normal
+    """The pose putting both ends of each paired map segment on its image segment's line (paper eq.
+    "costs"), by Gauss-Newton with Huber weights at 2 px: the iterations on a ``LineProjection``'s arrays (its ``evaluate``, with the normal
     equations summed in place): returns the (4, 4) world_from_cam, or None for a singular system."""
     T = world_from_cam.copy()
     J = np.empty(6)
