@@ -189,9 +189,8 @@ def shifted_values(
     def run(worker: int) -> None:
         part = slice(bounds[worker], bounds[worker + 1])
         out[part] = _shifted_values(
-            image.segments, image.angles, image.lengths, image.grid_ptr, image.grid_items, image.grid_w,
-            image.grid_px, image.empty, image.cell_px, projected, shifts[part], config.distance_px,
-            np.radians(config.angle_deg), config.unexplained_weight,
+            image.segments, image.angles, image.lengths, image.empty, image.cell_px, projected, shifts[part],
+            config.distance_px, np.radians(config.angle_deg), config.unexplained_weight,
         )  # fmt: skip
 
     run_parallel(run, workers)
@@ -475,10 +474,6 @@ def _shifted_values(
     segments: np.ndarray,
     angles: np.ndarray,
     lengths: np.ndarray,
-    grid_ptr: np.ndarray,
-    grid_items: np.ndarray,
-    grid_w: int,
-    grid_px: float,
     empty: np.ndarray,
     cell_px: float,
     projected: np.ndarray,

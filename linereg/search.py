@@ -796,8 +796,8 @@ def _solve_rounds(
     tolerance = score_config.distance_px + _pixels_moved(lines3d, camera, pose, size_m)
     tolerance += f * np.tan(np.radians(config.rotation_slack_deg))  # the rotation candidate's own error
     # a round (the one-to-one covering pairs at the tolerance, then the pose fitted to them) runs in one
-    # compiled call (``_solve_round``):
-    # the orbit rivals of a tracked frame solve in threads, and the glue between kernels held the GIL
+    # compiled call (``_solve_round``): the orbit rivals of a tracked frame solve in threads, and numpy
+    # glue between kernels held the GIL
     segments = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
     mask = np.ones(len(segments), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
@@ -838,12 +838,12 @@ def _solve_round(
     angle_tol: float,
     world_from_cam: np.ndarray,
 ) -> np.ndarray | None:  # pragma: no cover - numba
-    """One round of ``_solve_rounds``: ``one_to_one_pairs`` (projection, covering pairs at ``distance``
-    and ``angle_tol``, longest cover first, one per image and per map segment: ``Score.one_to_one``) and
-    the pose fitted to them
-    (``geometry.line_coefficients``, ``LineProjection.build``, ``_gauss_newton``) from the pose
-    (``world_from_cam`` = its inverse, computed by the caller as those functions do), the same operations
-    in the same order; returns the new world_from_cam or None (fewer than 4 pairs, a singular system)."""
+    """One round of ``_solve_rounds`` from a pose (``world_from_cam``: its inverse, by the caller): the
+    covering pairs at ``distance`` and ``angle_tol`` taken one per image and per map segment, longest cover
+    first (``Score.one_to_one``), then the pose fitted to them by ``_gauss_newton`` on the arrays
+    ``geometry.line_coefficients`` and ``LineProjection.build`` make, written out here in the same
+    operations and order (numpy cannot be called from here). Returns the new world_from_cam, or None
+    (fewer than 4 pairs, a singular system)."""
     projected, index = _project_clipped(lines3d, cam_from_world, intrinsics, width, height, near, visible)
     i, j, cover = _covering_pairs(
         segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected, distance, angle_tol
@@ -904,8 +904,9 @@ def _gauss_newton(
     iterations: int,
 ) -> np.ndarray | None:  # pragma: no cover - numba
     """The pose putting both ends of each paired map segment on its image segment's line (paper eq.
-    "costs"), by Gauss-Newton with Huber weights at 2 px: the iterations on a ``LineProjection``'s arrays (its ``evaluate``, with the normal
-    equations summed in place): returns the (4, 4) world_from_cam, or None for a singular system."""
+    "costs"), by Gauss-Newton with Huber weights at 2 px: the iterations on a ``LineProjection``'s arrays
+    (its ``evaluate``, with the normal equations summed in place). Returns the (4, 4) world_from_cam, or
+    None for a singular system."""
     T = world_from_cam.copy()
     J = np.empty(6)
     for _ in range(iterations):

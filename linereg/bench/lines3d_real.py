@@ -39,9 +39,11 @@ def run_scene(folder: Path, overrides: dict[str, Any], overlay_dir: Path | None)
             print(
                 f"{folder.name}: building the map of {item.cloud_path.name} ...", file=sys.stderr, flush=True
             )
-            cloud, intensity = io.read_cloud_intensity(item.cloud_path)
-            wanted = intensity if overrides.get("intensity_edges") else None
-            line_map, cost = build_in_child(cloud, overrides, wanted)
+            if overrides.get("intensity_edges"):
+                cloud, intensity = io.read_cloud_intensity(item.cloud_path)
+            else:
+                cloud, intensity = io.read_cloud(item.cloud_path), None
+            line_map, cost = build_in_child(cloud, overrides, intensity)
             maps[item.cloud_path] = (line_map, cost | {"points": len(cloud)}, cloud)
         line_map, cost, cloud = maps[item.cloud_path]
         camera = item.camera.undistorted()

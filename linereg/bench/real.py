@@ -203,9 +203,11 @@ def build_map(
     from ..map.linemap import LineMap
 
     start = time.perf_counter()
-    points, intensity = io.read_cloud_intensity(cloud_path)
+    points, intensity = (
+        io.read_cloud_intensity(cloud_path) if intensity_edges else (io.read_cloud(cloud_path), None)
+    )
     config = MapBuildConfig(lines3d=lines3d_config(map_config, points), intensity_edges=intensity_edges)
-    line_map = LineMap.build(points, config, intensity=intensity if intensity_edges else None)
+    line_map = LineMap.build(points, config, intensity=intensity)
     if plane_directions:
         line_map = with_plane_directions(line_map, points)
     record = {

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import sys
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -68,7 +67,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run_build(args: argparse.Namespace) -> int:
     from ..config import Lines3DConfig, MapBuildConfig
     from ..errors import InvalidInputError
-    from ..io import read_cloud_intensity, read_sensor_origin
+    from ..io import read_cloud, read_cloud_intensity, read_sensor_origin
     from ..map.linemap import LineMap
 
     if args.voxel < 0 or (args.plane_voxel is not None and args.plane_voxel <= 0):
@@ -80,7 +79,10 @@ def run_build(args: argparse.Namespace) -> int:
     with Progress(len(STAGES), "map build", log_steps=True) as progress:
         progress.update(0, "read")
         start = time.perf_counter()
-        points, intensity = read_cloud_intensity(args.cloud)
+        # the intensity only when asked: reading it reads a PLY or PCD a second time
+        points, intensity = (
+            read_cloud_intensity(args.cloud) if args.intensity_edges else (read_cloud(args.cloud), None)
+        )
         origin = args.sensor_origin if args.sensor_origin is not None else read_sensor_origin(args.cloud)
         line_map = LineMap.build(
             points,
@@ -88,7 +90,7 @@ def run_build(args: argparse.Namespace) -> int:
             name=args.name or args.cloud.stem,
             progress=lambda stage: progress.update(1, stage),
             sensor_origin=None if origin is None else np.asarray(origin, dtype=np.float64),
-            intensity=intensity if args.intensity_edges else None,
+            intensity=intensity,
             source=str(args.cloud),
         )
         progress.update(1, "write")
@@ -99,8 +101,6 @@ def run_build(args: argparse.Namespace) -> int:
         f"{args.output}: {len(line_map)} segments, {len(line_map.clusters)} clusters "
         f"from {len(points):,} points in {seconds:.1f} s"
     )
-    for note in line_map.metadata.get("notes", []):
-        print(f"note: {note}", file=sys.stderr)
     return 0
 
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..config import IntensityEdgesConfig, SensorEdgesConfig
-from .sensor_edges import lines_across_rings
+from .sensor_edges import along_rings, lines_across_rings
 
 
 def intensity_edges(
@@ -55,17 +55,9 @@ def step_points(
     spread = float(np.subtract(*np.percentile(value[usable], [95, 5])))
     if not spread > 0:  # one intensity everywhere: nothing steps
         return np.zeros((0, 3)), np.zeros(0, np.int64)
-    rel = points - sensor
-    r = np.linalg.norm(rel, axis=1)
-    az = np.arctan2(rel[:, 1], rel[:, 0])
-    order = np.flatnonzero(usable)
-    order = order[np.lexsort((az[order], ring[order]))]
-    rg, rr, v = ring[order], r[order], value[order]
-    same = rg[1:] == rg[:-1]
-    step = np.abs(np.diff(az[order]))
-    typical = np.median(step[same]) if same.any() else 0.0
-    # neighbours on one surface: consecutive along a ring, no dropped returns, no range jump
-    linked = same & (step <= 4.0 * typical + 1e-12)
+    order, rr, linked = along_rings(points, ring, sensor, usable)
+    rg, v = ring[order], value[order]
+    # neighbours on one surface: ring neighbours without a range jump
     linked &= np.abs(rr[1:] - rr[:-1]) <= config.max_range_step_fraction * np.minimum(rr[1:], rr[:-1])
     n, w = len(order), config.window
     run = np.cumsum(np.r_[0, ~linked])  # run id of each point: a window must not leave its run

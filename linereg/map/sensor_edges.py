@@ -56,23 +56,29 @@ def lines_across_rings(
     return out
 
 
+def along_rings(
+    points: np.ndarray, ring: np.ndarray, sensor: np.ndarray, usable: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ((n,) int64 indices of the ``usable`` (P,) bool points sorted by ring, then azimuth about
+    (3,) ``sensor``; (n,) their ranges; (n - 1,) bool: is each one's successor its neighbour on the ring
+    (consecutive and no wider apart than a few azimuth steps: no dropped returns)?)."""
+    rel = points - sensor
+    az = np.arctan2(rel[:, 1], rel[:, 0])
+    order = np.flatnonzero(usable)
+    order = order[np.lexsort((az[order], ring[order]))]
+    same = ring[order][1:] == ring[order][:-1]  # consecutive along one ring
+    step = np.abs(np.diff(az[order]))
+    typical = np.median(step[same]) if same.any() else 0.0
+    return order, np.linalg.norm(rel[order], axis=1), same & (step <= 4.0 * typical + 1e-12)
+
+
 def edge_points(
     points: np.ndarray, ring: np.ndarray, sensor: np.ndarray, config: SensorEdgesConfig
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((n,) int64 indices of edge points, (n,) int8 their kind: OCCLUDING or RING_EDGE)."""
-    rel = points - sensor
-    r = np.linalg.norm(rel, axis=1)
-    az = np.arctan2(rel[:, 1], rel[:, 0])
     counts = np.bincount(ring[ring >= 0]) if (ring >= 0).any() else np.zeros(0, np.int64)
     usable = (ring >= 0) & (counts[np.maximum(ring, 0)] >= config.min_ring_points if len(counts) else False)
-    order = np.flatnonzero(usable)
-    order = order[np.lexsort((az[order], ring[order]))]
-    rr, rg = r[order], ring[order]
-    same = rg[1:] == rg[:-1]  # consecutive along one ring
-    step = np.abs(np.diff(az[order]))
-    typical = np.median(step[same]) if same.any() else 0.0
-    # neighbours along a ring: consecutive and no wider apart than a few azimuth steps (no dropped returns)
-    linked = same & (step <= 4.0 * typical + 1e-12)
+    order, rr, linked = along_rings(points, ring, sensor, usable)
     farther_next = linked & (rr[1:] > rr[:-1] * (1 + config.jump_fraction) + config.jump_m)
     farther_prev = linked & (rr[:-1] > rr[1:] * (1 + config.jump_fraction) + config.jump_m)
     occluding = np.zeros(len(order), dtype=bool)
