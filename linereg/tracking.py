@@ -16,8 +16,11 @@ enters the graph but is not claimed: ``success=False``, reason "from neighbours 
 a fix on a track whose last ``consistency_window`` fixes together lie beyond the gate over them. A fix
 refined from a guess (a prediction without odometry, or after a lost frame) must also pass the global
 decision's rival tests (``sequence.rival_test``: the fix turned and orbited); one refused for a rival is
-relocalized near its prediction at once. A relocalization not near a prediction (global, or in the ball
-the camera can have reached) starts a track that is posed but not claimed ("unconfirmed ...") until an
+relocalized near its prediction at once; when that cannot decide either, without odometry the fix joins
+the graph unclaimed (event tracked, reason "ambiguous ... the track follows it") rather than leaving the
+track to the constant-velocity guess. A relocalization not near a prediction (global, or in the ball the
+camera can have reached), and a fix refined from a prediction ``global_after_frames`` lost frames old
+without odometry, starts a track that is posed but not claimed ("unconfirmed ...") until an
 independent relocalization of a later frame lands on it (``confirm_global``): one frame's answer can be a
 repeated structure's twin, or what scores best where the search missed the truth. Frames coasting on
 odometry gather in a window; once odometry no longer holds the window rigid to within the score's resolution,
@@ -209,6 +212,8 @@ class Tracker:
         predicted, step, cov = self._predict(relative, stamp)
         radius = cfg.max_relocalize_radius_m
         tracked = Registration(success=False, reason="no pose yet")
+        # without odometry, after global_after_frames lost frames the prediction no longer places the search
+        untrusted = relative is None and self._lost >= cfg.global_after_frames
         enough = len(lines) >= cfg.register.min_lines2d
         if not enough:  # no fix can come of it: not refined (nor culled for)
             tracked = Registration(
@@ -220,6 +225,8 @@ class Tracker:
             starts = [predicted] if relative is not None else [predicted, self._pose]
             # a prediction without odometry, or after lost frames, is a guess: its fix is a local search
             tracked = self._track(image, starts, radius, guessed=relative is None or self._lost > 0)
+            if tracked.success and untrusted:
+                return self._restart(image, tracked, stamp)
             if tracked.success:
                 self.event = "tracked"
                 return self._join(lines, image, tracked, predicted, step, cov, stamp)
@@ -244,6 +251,19 @@ class Tracker:
                 if self._unconfirmed is not None:
                     return replace(found, success=False, reason=self._unconfirmed_reason())
                 return self._claimed(found, stamp)
+        if rivalled and untrusted:
+            return self._restart(image, tracked, stamp)
+        if rivalled and relative is None:
+            # an ambiguous fix (an orbit along a facade's valley, a turn on clutter, scores as much) that the
+            # search near the prediction could not decide either still pins the pose to that neighbourhood,
+            # and the track's motion picks its side: followed, not claimed. A track that set such frames
+            # aside coasted on the constant-velocity guess, which carries the last turn on and on (on the
+            # synthetic walks, 20-100 degrees off after a few seconds) until a global relocalization found
+            # it again. With odometry the frame coasts on the odometry, which holds the track better (a
+            # walk's track following ambiguous fixes slid 0.45 m along a valley and claimed 10 frames there).
+            assert predicted is not None
+            self.event = "tracked"
+            return self._join(lines, image, tracked, predicted, step, cov, stamp, claim=False)
         # only odometry holds coasting frames together (a constant-velocity guess does not): a window
         return self._coast(image if relative is not None else None, tracked, predicted, step, cov)
 
@@ -256,13 +276,32 @@ class Tracker:
         step: np.ndarray | None,
         cov: np.ndarray | None,
         stamp: float | None,
+        claim: bool = True,
     ) -> Registration:
         """Returns the Registration of a fix added to the track's graph with the motion from its
-        predecessor: claimed unless the innovation gate doubts it or its track is unconfirmed."""
+        predecessor: claimed unless the innovation gate doubts it or its track is unconfirmed. ``claim``
+        False: a fix refused as ambiguous that the track follows (``_step``), never claimed."""
         doubt = self._doubt(fix, predicted, step, cov)
         added = self._add(image, fix, step, cov)
         doubt = self._confirm(lines, image, added, stamp) or doubt
+        if not claim:
+            return replace(added, success=False, reason=f"{fix.reason}; the track follows it, not claimed")
         return replace(added, success=False, reason=doubt) if doubt else self._claimed(added, stamp)
+
+    def _restart(self, image: ImageLines, fix: Registration, stamp: float | None) -> Registration:
+        """Returns the Registration of a fix refined from a prediction the tracker no longer trusts: without
+        odometry after ``global_after_frames`` lost frames, when its relocalizations search globally. Such a
+        fix is one frame's answer, found from a guess metres and tens of degrees off (a constant velocity
+        carried through the loss), and checked only against rivals near it: like a global relocalization it
+        starts a new track, unconfirmed (``confirm_global``). (On the synthetic walk of seed 0, a fix after
+        28 lost frames landed on a facade copy 7.4 m off, passed the rival test, and its track claimed 23
+        frames.)"""
+        self.event = "relocalized"
+        self._start(image, fix, independent=True)
+        if self._unconfirmed is not None:
+            reason = self._unconfirmed_reason() if fix.success else fix.reason
+            return replace(fix, success=False, reason=reason)
+        return self._claimed(fix, stamp) if fix.success else fix
 
     def _claimed(self, result: Registration, stamp: float | None) -> Registration:
         """Returns a claimed fix, noting when and where it was (the reach of ``max_speed_m_s``)."""

@@ -66,7 +66,8 @@ def _first_step(scene: tuple[LineMap, np.ndarray, np.ndarray], noise_px: float, 
 def test_a_fix_from_a_guess_must_pass_the_decisions_rival_tests():
     """Odometry predicts; a constant-velocity guess does not, and its fix is claimed only where no distinct
     pose scores within the decision's margin, the fix turned (a lattice's copy one period over) or orbited
-    round what it looks at (a small wall patch), unless the fix is sharp and the rival is not."""
+    round what it looks at (a small wall patch), unless the fix is sharp and the rival is not. An
+    ambiguous fix from a guess is followed by the track, not claimed."""
     lattice, patch = _lattice(), _patch()
     # exact lines: the fix is sharp, the lattice's turned copy (94 % of it) is not: a fix either way
     for odometry in (True, False):
@@ -75,11 +76,12 @@ def test_a_fix_from_a_guess_must_pass_the_decisions_rival_tests():
     # 1 px of noise: the fix is no longer sharp; the copy is a rival the guess cannot rule out
     assert _first_step(lattice, 1.0, True)[0].success
     r, event = _first_step(lattice, 1.0, False)
-    assert not r.success and event == "predicted" and "ambiguous: the fix turned" in r.reason
+    assert not r.success and event == "tracked" and "ambiguous: the fix turned" in r.reason
+    assert "the track follows it" in r.reason  # its lines still place the track
     # the patch orbited by 3 or 6 deg scores as much: an odometry fix, no fix from a guess
     assert _first_step(patch, 1.0, True)[0].success
     r, event = _first_step(patch, 1.0, False)
-    assert not r.success and event == "predicted" and "ambiguous: the fix orbited" in r.reason
+    assert not r.success and event == "tracked" and "ambiguous: the fix orbited" in r.reason
 
 
 def test_after_a_long_loss_a_top_speed_keeps_the_relocalization_within_reach():
@@ -108,6 +110,30 @@ def test_after_a_long_loss_a_top_speed_keeps_the_relocalization_within_reach():
         later = [tracker.step(frames[k], timestamp=0.1 * k) for k in range(12, 17)]
         assert [r.success for r in later] == [False] * 4 + [True], [r.reason for r in later]
         assert all(pose_errors(r.cam_from_world, T)[1] < 1e-3 for r, T in zip(later, truth[12:], strict=True))
+
+
+def test_a_fix_from_a_prediction_no_longer_trusted_starts_an_unconfirmed_track():
+    """Without odometry, after ``global_after_frames`` lost frames the prediction is a stale guess (its
+    relocalizations search globally): a frame refined from it to a fix is one frame's answer, as a global
+    relocalization's is, and starts a track claimed only once a later independent relocalization agrees;
+    after a shorter loss the fix is tracked and claimed at once. (The camera stands still through the
+    blackout, so the refinement from the prediction finds it either way.)"""
+    line_map, truth, frames = _scene(1)
+    blank = np.zeros((0, 4))
+    for lost, first in ((10, "relocalized"), (3, "tracked")):
+        tracker = Tracker(line_map, CAMERA)
+        tracker.start_at(truth[0])
+        assert tracker.step(frames[0], timestamp=0.0).success
+        for k in range(1, 1 + lost):
+            assert not tracker.step(blank, timestamp=0.1 * k).success
+        r = tracker.step(frames[0], timestamp=0.1 * (1 + lost))
+        assert tracker.event == first and pose_errors(r.cam_from_world, truth[0])[1] < 1e-3
+        if first == "tracked":
+            assert r.success
+            continue
+        assert not r.success and r.reason.startswith("unconfirmed")
+        later = [tracker.step(frames[0], timestamp=0.1 * k) for k in range(2 + lost, 7 + lost)]
+        assert [r.success for r in later] == [False] * 4 + [True], [r.reason for r in later]
 
 
 def test_a_top_speed_must_be_positive():
