@@ -148,15 +148,18 @@ def _read_open3d(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarr
     o3d = open3d()
     expected = _ply_vertex_count(path) if path.suffix.lower() == ".ply" else None
     # open3d reports a corrupt file on stderr and returns an empty or partial cloud: checked here and by the caller
-    cloud = o3d.io.read_point_cloud(str(path), format="auto", remove_nan_points=False)
-    points = np.asarray(cloud.points, dtype=np.float64)
-    if expected is not None and len(points) != expected:
-        raise FileFormatError(f"{path}: corrupt PLY: header declares {expected} vertices, read {len(points)}")
     intensity = None
-    if with_intensity:  # the legacy cloud holds no intensity: the tensor reader keeps every property
-        attributes = o3d.t.io.read_point_cloud(str(path)).point
+    if with_intensity:  # the tensor reader keeps every property (the legacy cloud holds no intensity)
+        attributes = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False).point
+        has = "positions" in attributes
+        points = attributes["positions"].numpy().astype(np.float64) if has else np.zeros((0, 3))
         if "intensity" in attributes:
             intensity = attributes["intensity"].numpy().astype(np.float64).reshape(-1)
+    else:
+        cloud = o3d.io.read_point_cloud(str(path), format="auto", remove_nan_points=False)
+        points = np.asarray(cloud.points, dtype=np.float64)
+    if expected is not None and len(points) != expected:
+        raise FileFormatError(f"{path}: corrupt PLY: header declares {expected} vertices, read {len(points)}")
     return points, intensity
 
 
@@ -209,8 +212,8 @@ def _read_text(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray
                     rows = np.loadtxt(path, comments=("#", "//"), ndmin=2, delimiter=delimiter)
                 except ValueError:
                     continue
-                if rows.shape[1] == 4:
-                    return rows[:, :3], rows[:, 3]
+                if rows.shape[1] >= 3:  # read once: the points are its first three columns either way
+                    return rows[:, :3], rows[:, 3] if rows.shape[1] == 4 else None
                 break
         try:
             points = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)

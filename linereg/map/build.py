@@ -22,6 +22,7 @@ from typing import Any, NamedTuple, TypeVar
 import numpy as np
 
 from ..config import Lines3DConfig, MapBuildConfig
+from ..errors import InvalidInputError
 from ..threads import thread_count
 from . import kinds
 from .collinear import along
@@ -71,16 +72,12 @@ def extract_map(
     if intensity is not None:
         intensity = np.asarray(intensity, dtype=np.float64).reshape(-1)
         if len(intensity) != len(points):
-            from ..errors import InvalidInputError
-
             raise InvalidInputError(
                 f"intensity must hold one value per point: {len(intensity)} for {len(points)} points"
             )
     if sensor_origin is not None:
         sensor_origin = np.asarray(sensor_origin, dtype=np.float64).reshape(3)
         if not np.isfinite(sensor_origin).all():
-            from ..errors import InvalidInputError
-
             raise InvalidInputError(f"sensor_origin must be finite, got {sensor_origin}")
     if progress:
         progress("profile")

@@ -36,7 +36,9 @@ def box_quads(lo: tuple[float, float, float], hi: tuple[float, float, float]) ->
     return c[np.array(faces)]
 
 
-def ground_quad(z: float, half_m: float, x: tuple[float, float] | None = None, y=None) -> np.ndarray:
+def ground_quad(
+    z: float, half_m: float, x: tuple[float, float] | None = None, y: tuple[float, float] | None = None
+) -> np.ndarray:
     """Returns a (1, 4, 3) horizontal rectangle at height z: [x0, x1] x [y0, y1] (default +-half_m)."""
     x0, x1 = x or (-half_m, half_m)
     y0, y1 = y or (-half_m, half_m)
