@@ -43,6 +43,8 @@ class ImageLines:
         each listed wherever it passes within ``distance_px + grid_px / 2`` (the pair test's candidates).
     empty: (h, w) bool raster of cells of ``cell_px`` pixels farther than the empty radius from every
         segment (cell (r, c) covers pixels [c, c + 1) x [r, r + 1) times cell_px).
+    empty_sum: (h + 1, w + 1) int64 counts of empty cells above and left of each corner (a summed-area
+        table: a projected segment whose box holds no empty cell is not sampled for the penalty).
     """
 
     segments: np.ndarray
@@ -56,6 +58,7 @@ class ImageLines:
     cell_px: float
     width: int
     height: int
+    empty_sum: np.ndarray
 
     @property
     def total_length(self) -> float:
@@ -71,7 +74,7 @@ def image_lines(lines2d: np.ndarray, camera: Camera, config: ScoreConfig) -> Ima
     ptr, items, grid_w = _segment_grid(lines2d, camera.width, camera.height, GRID_PX, config.distance_px)
     return ImageLines(
         lines2d, segment_lengths(lines2d), angles, ptr, items, grid_w, GRID_PX, empty, cell, camera.width,
-        camera.height,
+        camera.height, summed_area(empty),
     )  # fmt: skip
 
 
@@ -137,7 +140,7 @@ def score_projected(
     each one's row in the map (``Score.pairs`` use it)."""
     pairs, cover = _pairs_of(image, projected, index, config)
     explained = _union_lengths(np.ascontiguousarray(pairs[:, 0]), cover, len(image.segments))
-    unexplained = _length_in_cells(projected, image.empty, image.cell_px)
+    unexplained = _length_in_cells(projected, image.empty, image.cell_px, image.empty_sum)
     value = float(explained.sum()) - config.unexplained_weight * unexplained
     return Score(value, explained, unexplained, pairs, cover)
 
@@ -189,8 +192,8 @@ def shifted_values(
     def run(worker: int) -> None:
         part = slice(bounds[worker], bounds[worker + 1])
         out[part] = _shifted_values(
-            image.segments, image.angles, image.lengths, image.empty, image.cell_px, projected, shifts[part],
-            config.distance_px, np.radians(config.angle_deg), config.unexplained_weight,
+            image.segments, image.angles, image.lengths, image.empty, image.empty_sum, image.cell_px, projected,
+            shifts[part], config.distance_px, np.radians(config.angle_deg), config.unexplained_weight,
         )  # fmt: skip
 
     run_parallel(run, workers)
@@ -450,23 +453,56 @@ def _union_lengths(i: np.ndarray, cover: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def summed_area(mask: np.ndarray) -> np.ndarray:
+    """Returns (h + 1, w + 1) int64: the count of True cells of (h, w) ``mask`` above and left of each corner."""
+    out = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), np.int64)
+    out[1:, 1:] = np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1)
+    return out
+
+
 @numba.njit(cache=True, nogil=True)
-def _length_in_cells(projected: np.ndarray, mask: np.ndarray, cell: float) -> float:
-    """Returns the length (px) of (K, 4) segments inside the True cells of ``mask``, sampled every half cell."""
+def _length_in_cells(projected: np.ndarray, mask: np.ndarray, cell: float, counts: np.ndarray) -> float:
+    """Returns the length (px) of (K, 4) segments inside the True cells of ``mask``, sampled every half cell
+    (``counts``: its ``summed_area``; a segment whose box holds no True cell is not sampled)."""
     total = 0.0
-    h, w = mask.shape
     for k in range(len(projected)):
-        p = projected[k]
-        length = np.hypot(p[2] - p[0], p[3] - p[1])
-        count = max(int(np.ceil(length / (0.5 * cell))), 1)
-        step = length / count
-        for s in range(count):
-            t = (s + 0.5) / count
-            c = int((p[0] + t * (p[2] - p[0]) + 0.5) / cell)
-            r = int((p[1] + t * (p[3] - p[1]) + 0.5) / cell)
-            if 0 <= r < h and 0 <= c < w and mask[r, c]:
-                total += step
+        if _may_touch(projected[k], counts, cell, 0.0, 0.0, 0.0, 0.0):
+            total = _in_cells(projected[k], mask, cell, total)
     return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _in_cells(p: np.ndarray, mask: np.ndarray, cell: float, total: float) -> float:
+    """Returns ``total`` plus the length (px) of segment (4,) ``p`` inside the True cells of ``mask``, sampled
+    every half cell (added sample by sample: a sum over segments comes out the same whichever are skipped)."""
+    h, w = mask.shape
+    length = np.hypot(p[2] - p[0], p[3] - p[1])
+    count = max(int(np.ceil(length / (0.5 * cell))), 1)
+    step = length / count
+    for s in range(count):
+        t = (s + 0.5) / count
+        c = int((p[0] + t * (p[2] - p[0]) + 0.5) / cell)
+        r = int((p[1] + t * (p[3] - p[1]) + 0.5) / cell)
+        if 0 <= r < h and 0 <= c < w and mask[r, c]:
+            total += step
+    return total
+
+
+@numba.njit(cache=True, nogil=True)
+def _may_touch(
+    p: np.ndarray, counts: np.ndarray, cell: float, x0: float, y0: float, x1: float, y1: float
+) -> bool:
+    """Returns False if segment (4,) ``p`` moved by any shift in [x0, x1] x [y0, y1] px samples no True
+    cell (``_in_cells``): no True cell (``counts``: ``summed_area``) in the cells of its box, widened by a
+    pixel for the samples' rounding (a cell index truncates, as ``_in_cells``' does: monotone in x)."""
+    h, w = counts.shape[0] - 1, counts.shape[1] - 1
+    c0 = max(int((min(p[0], p[2]) + x0 - 1.0 + 0.5) / cell), 0)
+    c1 = min(int((max(p[0], p[2]) + x1 + 1.0 + 0.5) / cell), w - 1)
+    r0 = max(int((min(p[1], p[3]) + y0 - 1.0 + 0.5) / cell), 0)
+    r1 = min(int((max(p[1], p[3]) + y1 + 1.0 + 0.5) / cell), h - 1)
+    if c0 > c1 or r0 > r1:
+        return False
+    return counts[r1 + 1, c1 + 1] - counts[r0, c1 + 1] - counts[r1 + 1, c0] + counts[r0, c0] > 0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -475,6 +511,7 @@ def _shifted_values(
     angles: np.ndarray,
     lengths: np.ndarray,
     empty: np.ndarray,
+    empty_sum: np.ndarray,
     cell_px: float,
     projected: np.ndarray,
     shifts: np.ndarray,
@@ -491,6 +528,15 @@ def _shifted_values(
     reach = 0.0
     for k in range(len(shifts)):
         reach = max(reach, np.hypot(shifts[k, 0], shifts[k, 1]))
+    # the segments some shift brings near an empty cell: the only ones the penalty samples
+    x0, y0 = shifts[:, 0].min() if len(shifts) else 0.0, shifts[:, 1].min() if len(shifts) else 0.0
+    x1, y1 = shifts[:, 0].max() if len(shifts) else 0.0, shifts[:, 1].max() if len(shifts) else 0.0
+    touching = np.empty(len(projected), np.int64)
+    n_touching = 0
+    for j in range(len(projected)):
+        if _may_touch(projected[j], empty_sum, cell_px, x0, y0, x1, y1):
+            touching[n_touching] = j
+            n_touching += 1
     margin = distance + reach + 1e-6
     slack = 1e-6  # the angle of a shifted segment may differ from its own in the last bits
     cand_i = np.empty(len(segments) * len(projected) + 1, np.int64)
@@ -511,26 +557,49 @@ def _shifted_values(
                 continue
             cand_i[n_cand], cand_j[n_cand] = i, j
             n_cand += 1
+    # a shift moves a pair's offsets from the image segment's line (``_cover``'s e1, e2) by its component
+    # along the segment's normal alike: a pair covers only where that component brings the nearer offset
+    # within ``distance`` (a necessary test; the pair's own test decides), so most pairs are passed over at
+    # most shifts without their angle or cover being computed
+    band = np.empty((n_cand + 1, 2))
+    normal = np.empty((n_cand + 1, 2))
+    tol = np.empty(n_cand + 1)
+    for c in range(n_cand):
+        q, p = segments[cand_i[c]], projected[cand_j[c]]
+        ux = (q[2] - q[0]) / lengths[cand_i[c]]
+        uy = (q[3] - q[1]) / lengths[cand_i[c]]
+        e1 = (p[1] - q[1]) * ux - (p[0] - q[0]) * uy
+        e2 = (p[3] - q[1]) * ux - (p[2] - q[0]) * uy
+        band[c, 0], band[c, 1] = -distance - max(e1, e2) - 1e-6, distance - min(e1, e2) + 1e-6
+        normal[c, 0], normal[c, 1] = -uy, ux
+        tol[c] = max(angle_tol, np.arctan(2.0 * distance / lengths[cand_i[c]]))
     pair_i = np.empty(n_cand + 1, np.int64)
     cover = np.empty((n_cand + 1, 2))
     seg_angle = np.empty(len(projected))
     seg_ok = np.empty(len(projected), np.bool_)
+    seen = np.full(len(projected), -1, np.int64)  # the shift a moved segment's angle was computed for
     for k in range(len(shifts)):
+        sx, sy = shifts[k, 0], shifts[k, 1]
         for j in range(len(projected)):
-            moved[j, 0] = projected[j, 0] + shifts[k, 0]
-            moved[j, 1] = projected[j, 1] + shifts[k, 1]
-            moved[j, 2] = projected[j, 2] + shifts[k, 0]
-            moved[j, 3] = projected[j, 3] + shifts[k, 1]
-            dx, dy = moved[j, 2] - moved[j, 0], moved[j, 3] - moved[j, 1]
-            seg_ok[j] = np.hypot(dx, dy) != 0.0
-            seg_angle[j] = np.arctan2(dy, dx) % np.pi
+            moved[j, 0] = projected[j, 0] + sx
+            moved[j, 1] = projected[j, 1] + sy
+            moved[j, 2] = projected[j, 2] + sx
+            moved[j, 3] = projected[j, 3] + sy
         n = 0
         for c in range(n_cand):
+            b = sx * normal[c, 0] + sy * normal[c, 1]
+            if b < band[c, 0] or b > band[c, 1]:
+                continue
             i, j = cand_i[c], cand_j[c]
+            if seen[j] != k:
+                dx, dy = moved[j, 2] - moved[j, 0], moved[j, 3] - moved[j, 1]
+                seg_ok[j] = np.hypot(dx, dy) != 0.0
+                seg_angle[j] = np.arctan2(dy, dx) % np.pi
+                seen[j] = k
             if not seg_ok[j]:
                 continue
             gap = abs(angles[i] - seg_angle[j])
-            if min(gap, np.pi - gap) > max(angle_tol, np.arctan(2.0 * distance / lengths[i])):
+            if min(gap, np.pi - gap) > tol[c]:
                 continue
             lo, hi = _cover(segments[i], lengths[i], moved[j], distance)
             if hi > lo:
@@ -538,7 +607,11 @@ def _shifted_values(
                 cover[n, 0], cover[n, 1] = lo, hi
                 n += 1
         explained = _union_lengths(pair_i[:n], cover[:n], len(segments)).sum()
-        out[k] = explained - weight * _length_in_cells(moved, empty, cell_px)
+        unexplained = 0.0
+        for t in range(n_touching):
+            if _may_touch(moved[touching[t]], empty_sum, cell_px, 0.0, 0.0, 0.0, 0.0):
+                unexplained = _in_cells(moved[touching[t]], empty, cell_px, unexplained)
+        out[k] = explained - weight * unexplained
     return out
 
 
