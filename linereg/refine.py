@@ -20,6 +20,7 @@ from dataclasses import dataclass, replace
 from typing import Any
 
 import gtsam
+import numba
 import numpy as np
 
 from .camera import Camera
@@ -140,18 +141,30 @@ def _one_per_stretch(i: np.ndarray, cover: np.ndarray, min_px: float) -> np.ndar
     segment by more than half (two map lines on one image stretch: only the better one is fitted; map
     fragments along it each keep their own stretch)."""
     length = cover[:, 1] - cover[:, 0]
+    order = np.lexsort((-length, i))  # by image segment, longest cover first
     keep = length >= min_px
-    order = np.lexsort((-length, i))
-    taken: dict[int, list[tuple[float, float]]] = {}
+    return _free_stretches(order, np.ascontiguousarray(i, dtype=np.int64), np.ascontiguousarray(cover), keep)
+
+
+@numba.njit(cache=True, nogil=True)
+def _free_stretches(order: np.ndarray, i: np.ndarray, cover: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """Returns ``keep`` with every cover dropped that overlaps one taken before it (in ``order``, which
+    holds each image segment's covers together) on the same image segment by more than half its length."""
+    taken = np.empty((len(order), 2))
+    n, current = 0, -1
     for k in order:
         if not keep[k]:
             continue
-        lo, hi = cover[k]
-        spans = taken.setdefault(int(i[k]), [])
-        if any(min(hi, b) - max(lo, a) > 0.5 * (hi - lo) for a, b in spans):
-            keep[k] = False
-        else:
-            spans.append((lo, hi))
+        if i[k] != current:
+            current, n = i[k], 0
+        lo, hi = cover[k, 0], cover[k, 1]
+        for s in range(n):
+            if min(hi, taken[s, 1]) - max(lo, taken[s, 0]) > 0.5 * (hi - lo):
+                keep[k] = False
+                break
+        if keep[k]:
+            taken[n, 0], taken[n, 1] = lo, hi
+            n += 1
     return keep
 
 

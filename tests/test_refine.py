@@ -10,7 +10,7 @@ from linereg.config import RefineConfig, ScoreConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import camera_center, invert, line_coefficients, pose_errors, transform_points
 from linereg.line_factor import LineProjection, line_factor, line_residuals
-from linereg.refine import Refinement, refine_pose
+from linereg.refine import Refinement, _one_per_stretch, refine_pose
 from linereg.score import image_lines
 from linereg.sim.synthetic import paper_scene
 
@@ -254,3 +254,28 @@ def test_unknown_kernel_is_rejected():
     scene = paper_scene(np.random.default_rng(14), 30, 0.0, 0.0, 0.0)
     with pytest.raises(InvalidInputError, match="kernel"):
         refine(scene, scene.cam_from_world, RefineConfig(kernel="gauss"))  # type: ignore[arg-type]
+
+
+def test_each_image_stretch_keeps_its_longest_cover_and_the_fragments_beside_it():
+    # the rule, written plainly: longest first per image segment, a cover overlapping a taken one of its
+    # segment by more than half its own length is dropped, covers shorter than the minimum never taken
+    rng = np.random.default_rng(11)
+    i = rng.integers(0, 12, 400)
+    lo = rng.uniform(0.0, 80.0, 400).round(0)  # whole pixels: ties of start and length happen
+    cover = np.c_[lo, lo + rng.uniform(1.0, 60.0, 400).round(0)]
+    want = cover[:, 1] - cover[:, 0] >= 5.0
+    taken: dict[int, list[tuple[float, float]]] = {}
+    for k in np.lexsort((-(cover[:, 1] - cover[:, 0]), i)):
+        if want[k]:
+            spans = taken.setdefault(int(i[k]), [])
+            if any(
+                min(cover[k, 1], b) - max(cover[k, 0], a) > 0.5 * (cover[k, 1] - cover[k, 0])
+                for a, b in spans
+            ):
+                want[k] = False
+            else:
+                spans.append((cover[k, 0], cover[k, 1]))
+    got = _one_per_stretch(i, cover, 5.0)
+    assert np.array_equal(got, want)
+    assert 0 < got.sum() < (cover[:, 1] - cover[:, 0] >= 5.0).sum()  # some dropped for overlaps
+    assert _one_per_stretch(np.zeros(0, np.int64), np.zeros((0, 2)), 5.0).shape == (0,)
