@@ -607,10 +607,7 @@ def _shifted_values(
                 cover[n, 0], cover[n, 1] = lo, hi
                 n += 1
         explained = _union_lengths(pair_i[:n], cover[:n], len(segments)).sum()
-        unexplained = 0.0
-        for t in range(n_touching):
-            if _may_touch(moved[touching[t]], empty_sum, cell_px, 0.0, 0.0, 0.0, 0.0):
-                unexplained = _in_cells(moved[touching[t]], empty, cell_px, unexplained)
+        unexplained = _length_in_cells(moved[touching[:n_touching]], empty, cell_px, empty_sum)
         out[k] = explained - weight * unexplained
     return out
 
