@@ -6,27 +6,11 @@ over the stretch where both regions have points near it, reaching it from one si
 
 from __future__ import annotations
 
-from typing import NamedTuple
-
+import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
-from .neighbours import flat_lists
 from .planes import Planes
-
-
-class _Crease(NamedTuple):
-    """The line where regions a and b meet: origin + t direction for t in [enter, leave] (inside both
-    regions' boxes), searched with the larger region's raster ``cell``."""
-
-    a: int
-    b: int
-    origin: np.ndarray
-    direction: np.ndarray
-    enter: float
-    leave: float
-    cell: float
 
 
 def crease_segments(
@@ -40,7 +24,6 @@ def crease_segments(
     """Returns (K, 6) plane-plane intersection segments of touching ``large`` (R,) regions, clipped to
     where both have points within 3 cells of the line (a crease has no boundary in the cloud, only two
     planes meeting)."""
-    out = []
     pairs = planes.pairs[large[planes.pairs].all(axis=1)] if len(planes.pairs) else planes.pairs
     directions = np.cross(planes.normals[pairs[:, 0]], planes.normals[pairs[:, 1]])
     sines = np.linalg.norm(directions, axis=1)
@@ -59,28 +42,17 @@ def crease_segments(
     lo = np.maximum(box_lo[a], box_lo[b]) - 3 * cell[:, None]
     hi = np.minimum(box_hi[a], box_hi[b]) + 3 * cell[:, None]
     enter, leave, inside = _overlap(lo, hi, origin, directions)
-    lines = [
-        _Crease(a[k], b[k], origin[k], directions[k], enter[k], leave[k], cell[k])
-        for k in np.flatnonzero(inside)
-    ]
-    near = _near_lines(points, members, lines)
-    for k, line in enumerate(lines):
-        (ta, perp_a), (tb, perp_b) = near[k, 0], near[k, 1]
-        for t0, t1 in _common_runs(ta, tb, line.cell, config):
-            if _one_sided(ta, perp_a, t0, t1, share) and _one_sided(tb, perp_b, t0, t1, share):
-                out.append(np.r_[line.origin + t0 * line.direction, line.origin + t1 * line.direction])
-    return np.array(out).reshape(-1, 6)
-
-
-def _one_sided(t: np.ndarray, perp: np.ndarray, t0: float, t1: float, share: float) -> bool:
-    """Returns whether at least ``share`` of a region's points near a crease run lie on one side of it: a
-    crease bounds both regions, while facets of a rough surface that cross mid-way have points on both sides."""
-    inside = (t >= t0) & (t <= t1)
-    if not inside.any():
-        return False
-    p = perp[inside]
-    side = p @ (p.sum(axis=0) / max(np.linalg.norm(p.sum(axis=0)), 1e-12))
-    return bool(max((side > 0).mean(), (side < 0).mean()) >= share)
+    keep = np.flatnonzero(inside)
+    # every region's points one after another (members[r] is that region's slice)
+    sizes = np.array([len(members[r]) for r in range(len(members))], dtype=np.int64)
+    first = np.r_[0, np.cumsum(sizes)]
+    flat = np.concatenate([np.zeros(0, np.int64), *members]).astype(np.int64)
+    gap_half = np.maximum((config.collinear_gap_m / cell[keep] / 2).astype(np.int64), 1)
+    found = _crease_runs(
+        points, flat, first, a[keep], b[keep], origin[keep], directions[keep], enter[keep], leave[keep],
+        cell[keep], gap_half, config.min_length_m, share,
+    )  # fmt: skip
+    return found.reshape(-1, 6)
 
 
 def _overlap(
@@ -97,81 +69,162 @@ def _overlap(
     return enter, leave, ~missed & (leave > enter)
 
 
-def _near_lines(
-    points: np.ndarray, members: list[np.ndarray], lines: list[_Crease]
-) -> dict[tuple[int, int], tuple[np.ndarray, np.ndarray]]:
-    """Returns {(line k, side 0 / 1): ((n,) line parameters, (n, 3) offsets from the line)} of the points of
-    region a (side 0) and b (side 1) of each of the ``lines`` within 3 cells of the line's span.
+@numba.njit(cache=True, nogil=True)
+def _crease_runs(
+    points: np.ndarray,
+    flat: np.ndarray,
+    first: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    enter: np.ndarray,
+    leave: np.ndarray,
+    cell: np.ndarray,
+    gap_half: np.ndarray,
+    min_length: float,
+    share: float,
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns (K, 6) crease segments: per line k (origin[k] + t direction[k], regions a[k] and b[k], whose
+    points are flat[first[r]:first[r + 1]] of ``points``), the runs of raster cells ``cell[k]`` long where
+    both regions have points within 3 cells of the line, gaps of up to 2 gap_half[k] cells closed, at
+    least ``min_length`` long, kept where ``share`` of either region's points near the run lie on one side.
 
-    A region's lines are looked up together, one KD-tree query of all their samples (a room's regions meet
-    in thousands of pairs: one query each cost more than the search).
-    """
-    jobs: dict[int, list[tuple[int, int]]] = {}
-    for k, line in enumerate(lines):
-        for side, region in enumerate((line.a, line.b)):
-            jobs.setdefault(int(region), []).append((k, side))
-    out = {}
-    for region, wanted in jobs.items():
-        member = members[region]
-        samples, radii, job_of = [], [], []
-        for j, (k, _) in enumerate(wanted):
-            line = lines[k]
-            radius = 3 * line.cell
-            at = line.origin + np.outer(np.arange(line.enter, line.leave + radius, radius), line.direction)
-            samples.append(at)
-            radii.append(np.full(len(at), 1.5 * radius))
-            job_of.append(np.full(len(at), j))
-        tree = cKDTree(points[member])
-        found = tree.query_ball_point(np.concatenate(samples), np.concatenate(radii), return_sorted=False)
-        sizes, hits = flat_lists(found)
-        # distinct points of each line, in increasing order
-        key = np.unique(np.repeat(np.concatenate(job_of), sizes) * len(member) + hits)
-        bounds = np.searchsorted(key, np.arange(len(wanted) + 1) * len(member))
-        for j, (k, side) in enumerate(wanted):
-            line = lines[k]
-            idx = key[bounds[j] : bounds[j + 1]] - j * len(member)
-            out[k, side] = _near_line(points[member[idx]], line.origin, line.direction, 3 * line.cell)
+    A region's points near a line are those within 3 cells of it and within 4.5 cells of one of its
+    samples spaced 3 cells from ``enter`` to past ``leave`` (the span inside both regions' boxes)."""
+    found = [(0.0, 0.0, 0.0, 0.0, 0.0, 0.0) for _ in range(0)]
+    for k in range(len(a)):
+        r = 3.0 * cell[k]
+        d0, d1, d2 = direction[k, 0], direction[k, 1], direction[k, 2]
+        o0, o1, o2 = origin[k, 0], origin[k, 1], origin[k, 2]
+        count = int(np.ceil((leave[k] + r - enter[k]) / r))
+        sides_t = []
+        sides_perp = []
+        for region in (a[k], b[k]):
+            lo_m, hi_m = first[region], first[region + 1]
+            t_side = np.empty(hi_m - lo_m)
+            perp_side = np.empty((hi_m - lo_m, 3))
+            n = 0
+            for m in range(lo_m, hi_m):
+                q = flat[m]
+                p0, p1, p2 = points[q, 0] - o0, points[q, 1] - o1, points[q, 2] - o2
+                t = p0 * d0 + p1 * d1 + p2 * d2
+                e0, e1, e2 = p0 - t * d0, p1 - t * d1, p2 - t * d2
+                if e0 * e0 + e1 * e1 + e2 * e2 > r * r:
+                    continue
+                # the nearest samples of the line (at enter + i r) within 1.5 r
+                i = int(np.floor((t - enter[k]) / r))
+                hit = False
+                for j in (i, i + 1):
+                    if j < 0 or j >= count:
+                        continue
+                    s = enter[k] + j * r
+                    f0 = points[q, 0] - (o0 + s * d0)
+                    f1 = points[q, 1] - (o1 + s * d1)
+                    f2 = points[q, 2] - (o2 + s * d2)
+                    if f0 * f0 + f1 * f1 + f2 * f2 <= 2.25 * r * r:
+                        hit = True
+                if not hit and i >= count:
+                    s = enter[k] + (count - 1) * r
+                    f0, f1, f2 = (
+                        points[q, 0] - (o0 + s * d0),
+                        points[q, 1] - (o1 + s * d1),
+                        points[q, 2] - (o2 + s * d2),
+                    )
+                    hit = f0 * f0 + f1 * f1 + f2 * f2 <= 2.25 * r * r
+                if not hit and i < 0:
+                    s = enter[k]
+                    f0, f1, f2 = (
+                        points[q, 0] - (o0 + s * d0),
+                        points[q, 1] - (o1 + s * d1),
+                        points[q, 2] - (o2 + s * d2),
+                    )
+                    hit = f0 * f0 + f1 * f1 + f2 * f2 <= 2.25 * r * r
+                if not hit:
+                    continue
+                t_side[n] = t
+                perp_side[n, 0], perp_side[n, 1], perp_side[n, 2] = e0, e1, e2
+                n += 1
+            sides_t.append(t_side[:n])
+            sides_perp.append(perp_side[:n])
+        ta, tb = sides_t[0], sides_t[1]
+        if len(ta) == 0 or len(tb) == 0:
+            continue
+        lo, hi = max(ta.min(), tb.min()), min(ta.max(), tb.max())
+        if hi - lo < min_length:
+            continue
+        c = cell[k]
+        bins = int((hi - lo) / c) + 1
+        both = np.ones(bins, dtype=np.bool_)
+        for t_side in (ta, tb):
+            occupied = np.zeros(bins, dtype=np.bool_)
+            for t in t_side:
+                if t >= lo and t <= hi:
+                    occupied[int((t - lo) / c)] = True
+            both &= occupied
+        closed = _close_1d(both, gap_half[k])
+        i = 0
+        while i < bins:
+            if not closed[i]:
+                i += 1
+                continue
+            j = i
+            while j < bins and closed[j]:
+                j += 1
+            t0, t1 = lo + i * c, min(lo + j * c, hi)
+            i = j
+            if t1 - t0 < min_length:
+                continue
+            if _one_sided(ta, sides_perp[0], t0, t1, share) and _one_sided(tb, sides_perp[1], t0, t1, share):
+                found.append(
+                    (o0 + t0 * d0, o1 + t0 * d1, o2 + t0 * d2, o0 + t1 * d0, o1 + t1 * d1, o2 + t1 * d2)
+                )
+    out = np.empty((len(found), 6))
+    for i, segment in enumerate(found):
+        for j in range(6):
+            out[i, j] = segment[j]
     return out
 
 
-def _near_line(
-    near: np.ndarray, origin: np.ndarray, direction: np.ndarray, radius: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((k,) line parameters, (k, 3) offsets from the line) of the (n, 3) ``near`` points within
-    ``radius`` of the line."""
-    p = near - origin
-    t = p @ direction
-    perp = p - np.outer(t, direction)
-    near_line = np.einsum("ij,ij->i", perp, perp) <= radius * radius
-    return t[near_line], perp[near_line]
+@numba.njit(cache=True, nogil=True)
+def _one_sided(
+    t: np.ndarray, perp: np.ndarray, t0: float, t1: float, share: float
+) -> bool:  # pragma: no cover - numba
+    """Returns whether at least ``share`` of a region's points near a crease run (line parameter in
+    [t0, t1]) lie on one side of it: a crease bounds both regions, while facets of a rough surface that
+    cross mid-way have points on both sides."""
+    s0 = s1 = s2 = 0.0
+    n = 0
+    for i in range(len(t)):
+        if t[i] >= t0 and t[i] <= t1:
+            s0 += perp[i, 0]
+            s1 += perp[i, 1]
+            s2 += perp[i, 2]
+            n += 1
+    if n == 0:
+        return False
+    norm = max(np.sqrt(s0 * s0 + s1 * s1 + s2 * s2), 1e-12)
+    s0, s1, s2 = s0 / norm, s1 / norm, s2 / norm
+    above = below = 0
+    for i in range(len(t)):
+        if t[i] >= t0 and t[i] <= t1:
+            side = perp[i, 0] * s0 + perp[i, 1] * s1 + perp[i, 2] * s2
+            above += side > 0
+            below += side < 0
+    return max(above / n, below / n) >= share
 
 
-def _common_runs(
-    ta: np.ndarray, tb: np.ndarray, cell: float, config: Lines3DConfig
-) -> list[tuple[float, float]]:
-    """Returns the (t0, t1) intervals, at least min_length_m long, covered by both parameter sets."""
-    if len(ta) == 0 or len(tb) == 0:
-        return []
-    lo, hi = max(ta.min(), tb.min()), min(ta.max(), tb.max())
-    if hi - lo < config.min_length_m:
-        return []
-    nbins = int((hi - lo) / cell) + 1
-    occ_a = np.bincount(((ta[(ta >= lo) & (ta <= hi)] - lo) / cell).astype(np.int64), minlength=nbins) > 0
-    occ_b = np.bincount(((tb[(tb >= lo) & (tb <= hi)] - lo) / cell).astype(np.int64), minlength=nbins) > 0
-    both = _close_1d(occ_a & occ_b, max(int(config.collinear_gap_m / cell / 2), 1))
-    edges = np.diff(np.r_[0, both.astype(np.int8), 0])
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    runs = [(lo + s * cell, min(lo + e * cell, hi)) for s, e in zip(starts, stops, strict=True)]
-    return [(t0, t1) for t0, t1 in runs if t1 - t0 >= config.min_length_m]
-
-
-def _close_1d(mask: np.ndarray, half: int) -> np.ndarray:
-    """Returns the (n,) boolean mask with gaps of up to 2 * half samples filled (1D morphological closing)."""
-    kernel = np.ones(2 * half + 1)
-    padded = np.r_[np.zeros(half), mask.astype(np.float64), np.zeros(half)]
-    dilated = (np.convolve(padded, kernel, "same") > 0).astype(np.float64)
-    eroded = (
-        np.convolve(np.r_[np.ones(half), dilated[half:-half], np.ones(half)], kernel, "same")
-        >= len(kernel) - 0.5
-    )
-    return eroded[half:-half]
+@numba.njit(cache=True, nogil=True)
+def _close_1d(mask: np.ndarray, half: int) -> np.ndarray:  # pragma: no cover - numba
+    """Returns the (n,) boolean mask with gaps of up to 2 * half samples filled (1D morphological closing;
+    beyond the ends the dilation is taken as set, so a run reaching an end is not shortened)."""
+    n = len(mask)
+    dilated = np.zeros(n, dtype=np.bool_)
+    for i in range(n):
+        if mask[i]:
+            dilated[max(i - half, 0) : min(i + half + 1, n)] = True
+    closed = np.ones(n, dtype=np.bool_)
+    for i in range(n):
+        if not dilated[i]:
+            closed[max(i - half, 0) : min(i + half + 1, n)] = False
+    return closed

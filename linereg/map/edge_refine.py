@@ -7,11 +7,11 @@ query, and the per-bin edge estimates and per-line fits are grouped sums over fl
 
 from __future__ import annotations
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
-from ..threads import thread_count
 from .neighbours import flat_lists
 
 
@@ -110,38 +110,54 @@ def refine_regions(
 
 def _beside_pairs(besides: list[tuple[np.ndarray, int, int]], geometry: tuple[np.ndarray, ...]) -> np.ndarray:
     """Returns (q, 4) line, t, outward offset, depth of each region's (b, 3) beside points (u, v, signed
-    plane distance) within a band of each of its lines; ``besides``: per region its points and its lines
-    (first, end); geometry: (k, 2) starts, directions, outward normals, (k,) lengths, bands of all lines.
-
-    The pairs' order does not matter (their uses are minima and counts): one KD-tree holds every
-    region's points, each region lifted along a third axis by more than any search radius, so a line
-    finds only its own region's points, at the same distances (the third difference is exactly zero).
-    """
+    plane distance) within a band of each of its lines: 0 <= t <= length, |offset| <= band; ``besides``:
+    per region its points and its lines (first, end); geometry: (k, 2) starts, directions, outward
+    normals, (k,) lengths, bands of all lines. The pairs come line by line (their uses are minima and
+    counts: the order does not matter)."""
     a, d, out, length, band = geometry
     besides = [x for x in besides if len(x[0])]
     if not besides:
         return np.zeros((0, 4))
     beside = np.concatenate([near for near, _, _ in besides])
+    first = np.r_[0, np.cumsum([len(near) for near, _, _ in besides])].astype(np.int64)
     owner = np.full(len(a), -1, dtype=np.int64)  # the region of each line, among those with points
     for j, (_, lo, hi) in enumerate(besides):
         owner[lo:hi] = j
-    line, step, count, samples = _samples(a, d, length, band)
-    use = owner[line] >= 0
-    line, step, samples = line[use], step[use], samples[use]
-    radius = np.hypot(band[line], 0.5 * band[line])
-    lift = 2.0 ** np.ceil(np.log2(4.0 * radius.max() + 1.0))  # a power of two: region x lift is exact
-    region = np.repeat(np.arange(len(besides)), [len(near) for near, _, _ in besides])
-    tree = cKDTree(np.c_[beside[:, :2], region * lift])
-    found = tree.query_ball_point(
-        np.c_[samples, owner[line] * lift], radius, return_sorted=False, workers=thread_count(8)
-    )
-    size, point = flat_lists(found)
-    line, step = np.repeat(line, size), np.repeat(step, size)
-    line, point = _own_stretch(line, step, point, beside[:, :2], a, d, count, band)
-    rel = beside[point, :2] - a[line]
-    t, o = np.einsum("pk,pk->p", rel, d[line]), np.einsum("pk,pk->p", rel, out[line])
-    keep = (t >= 0) & (t <= length[line]) & (np.abs(o) <= band[line]) & np.isfinite(o)
-    return np.stack([line, t, o, beside[point, 2]], axis=1)[keep]
+    return _pairs_in_bands(beside, first, owner, a, d, out, length, band)
+
+
+@numba.njit(cache=True, nogil=True)
+def _pairs_in_bands(
+    beside: np.ndarray,
+    first: np.ndarray,
+    owner: np.ndarray,
+    a: np.ndarray,
+    d: np.ndarray,
+    out: np.ndarray,
+    length: np.ndarray,
+    band: np.ndarray,
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns ``_beside_pairs``' (q, 4) rows: for each line k of region owner[k] >= 0 (its points
+    beside[first[r]:first[r + 1]]), every point with 0 <= t <= length[k] and |o| <= band[k]. Two passes,
+    counting then filling: a large region's lines each see all its points."""
+    pairs = np.empty((0, 4))
+    for fill in (False, True):
+        n = 0
+        for k in range(len(owner)):
+            r = owner[k]
+            if r < 0:
+                continue
+            for p in range(first[r], first[r + 1]):
+                r0, r1 = beside[p, 0] - a[k, 0], beside[p, 1] - a[k, 1]
+                t = r0 * d[k, 0] + r1 * d[k, 1]
+                o = r0 * out[k, 0] + r1 * out[k, 1]
+                if t >= 0.0 and t <= length[k] and abs(o) <= band[k] and np.isfinite(o):
+                    if fill:
+                        pairs[n, 0], pairs[n, 1], pairs[n, 2], pairs[n, 3] = k, t, o, beside[p, 2]
+                    n += 1
+        if not fill:
+            pairs = np.empty((n, 4))
+    return pairs
 
 
 def _samples(

@@ -15,6 +15,7 @@ import logging
 from collections.abc import Callable
 from typing import NamedTuple
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -27,6 +28,7 @@ from .contours import image_contours, plane_basis, region_image, regions_lines
 from .creases import crease_segments
 from .edge_refine import refine_regions
 from .line_families import box_lines, dominant_directions, has_parallel, snap_directions, snap_to_families
+from .neighbours import flat_lists
 from .planes import Planes, segment_planes, voxel_downsample
 from .surfaces import Surfaces, concat_surfaces, empty_surfaces, raster_mesh
 
@@ -244,12 +246,49 @@ def _beside_points(
     )
     reaches = np.sqrt(np.sum((0.5 * (hi - lo) + band[:, None]) ** 2, axis=1) + depth_m**2)
     found = loose.query_ball_point(centres, reaches, return_sorted=False, workers=thread_count(8))
-    for i, (k, index) in enumerate(zip(todo, found, strict=True)):
-        region, frame = regions[k], frames[k]
-        rel = loose.data[index] - region.centroid
-        depth = rel @ region.normal
-        near = np.abs(depth) <= depth_m
-        uv = rel[near] @ frame.basis.T
-        inside = ((uv >= lo[i] - band[i]) & (uv <= hi[i] + band[i])).all(axis=1)
-        out[k] = np.c_[uv[inside], depth[near][inside]]
+    sizes, index = flat_lists(found)
+    first = np.r_[0, np.cumsum(sizes)]
+    normals = np.array([regions[k].normal for k in todo]).reshape(-1, 3)
+    origins = np.array([regions[k].centroid for k in todo]).reshape(-1, 3)
+    bases = np.array([frames[k].basis for k in todo]).reshape(-1, 2, 3)
+    rows, kept = _beside_rows(loose.data, index, first, origins, normals, bases, lo - band[:, None],
+                              hi + band[:, None], depth_m)  # fmt: skip
+    ends = np.r_[0, np.cumsum(kept)]
+    for i, k in enumerate(todo):
+        out[k] = rows[ends[i] : ends[i + 1]]
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _beside_rows(
+    data: np.ndarray,
+    index: np.ndarray,
+    first: np.ndarray,
+    origin: np.ndarray,
+    normal: np.ndarray,
+    basis: np.ndarray,
+    lo: np.ndarray,
+    hi: np.ndarray,
+    depth_m: float,
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns ((q, 3) u, v, signed plane distance of the points data[index[first[i]:first[i + 1]]]
+    within ``depth_m`` of region i's plane (``origin``, ``normal``) whose plane coordinates (``basis``)
+    lie in the box lo[i]-hi[i], region after region; (R,) how many of each region)."""
+    rows = np.empty((len(index), 3))
+    kept = np.zeros(len(first) - 1, dtype=np.int64)
+    n = 0
+    for i in range(len(first) - 1):
+        for m in range(first[i], first[i + 1]):
+            q = index[m]
+            r0, r1, r2 = data[q, 0] - origin[i, 0], data[q, 1] - origin[i, 1], data[q, 2] - origin[i, 2]
+            depth = r0 * normal[i, 0] + r1 * normal[i, 1] + r2 * normal[i, 2]
+            if abs(depth) > depth_m:
+                continue
+            u = r0 * basis[i, 0, 0] + r1 * basis[i, 0, 1] + r2 * basis[i, 0, 2]
+            v = r0 * basis[i, 1, 0] + r1 * basis[i, 1, 1] + r2 * basis[i, 1, 2]
+            if u < lo[i, 0] or u > hi[i, 0] or v < lo[i, 1] or v > hi[i, 1]:
+                continue
+            rows[n, 0], rows[n, 1], rows[n, 2] = u, v, depth
+            n += 1
+            kept[i] += 1
+    return rows[:n], kept

@@ -25,6 +25,7 @@ from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
 
+import numba
 import numpy as np
 from scipy import ndimage
 from scipy.spatial import cKDTree
@@ -75,37 +76,119 @@ def edge_points(points: np.ndarray, tree: cKDTree, config: PointEdgesConfig) -> 
     compare = min(config.compare_neighbours, k)
     near = np.zeros((len(points), compare), dtype=np.int64)
     threads = thread_count(8)
-    # blocks of at most config.chunk points on the threads: the gathers, sums and eigen solves of a block
+    # blocks of at most config.chunk points on the threads: the neighbour searches and the compiled fits
     # release the GIL, and every point's numbers are the same in any block. Four blocks a thread: a
     # thread held up (another process on the core) leaves its work to the others
     size = max(1, min(config.chunk, max(BLOCK_POINTS, -(-len(points) // (4 * threads)))))
     blocks = [slice(lo, lo + size) for lo in range(0, len(points), size)]
 
     def fit(block: slice) -> None:
-        p = points[block]
-        dist, nb = tree.query(p, k=k)
-        q = points[nb]
-        centroid = q.mean(axis=1)
-        d = q - centroid[:, None]
-        n = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))[1][:, :, 0]
-        off = centroid - p
-        off -= n * np.einsum("ni,ni->n", off, n)[:, None]
-        normal[block] = n
-        shift[block] = np.linalg.norm(off, axis=1) / np.maximum(dist[:, -1], 1e-12)
+        dist, nb = tree.query(points[block], k=k)
+        _fit_normals(points, block.start, nb, dist[:, -1], normal, shift)
         near[block] = nb[:, :compare]
 
     bends = np.zeros(len(points), dtype=bool)
-    cos = np.cos(np.radians(config.crease_deg))
+    least = int(np.ceil(config.bend_share * compare - 1e-9))  # of the compared normals turned
 
     def bend(block: slice) -> None:
-        nb, n = near[block], normal[block]
-        turned = np.abs(np.einsum("nki,ni->nk", normal[nb], n)) < cos
-        bends[block] = turned.mean(axis=1) >= config.bend_share
+        _bends(normal, near, block.start, min(block.stop, len(points)), np.cos(np.radians(config.crease_deg)),
+               least, bends)  # fmt: skip
 
     with ThreadPoolExecutor(max_workers=threads) as pool:
         list(pool.map(fit, blocks))
         list(pool.map(bend, blocks))
     return bends | (shift > config.boundary_shift)
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_normals(
+    points: np.ndarray, start: int, nb: np.ndarray, radius: np.ndarray, normal: np.ndarray, shift: np.ndarray
+) -> None:  # pragma: no cover - numba
+    """Fills ``normal[start + i]`` (the unit normal: the least-spread axis of the (n, k) neighbours ``nb[i]``
+    of point start + i) and ``shift[start + i]`` (their centroid's offset from the point in its tangent
+    plane, as a share of ``radius[i]``, the farthest neighbour's distance)."""
+    k = nb.shape[1]
+    cov = np.empty((3, 3))
+    for i in range(nb.shape[0]):
+        c0 = c1 = c2 = 0.0
+        for j in range(k):
+            q = nb[i, j]
+            c0 += points[q, 0]
+            c1 += points[q, 1]
+            c2 += points[q, 2]
+        c0 /= k
+        c1 /= k
+        c2 /= k
+        cov[:] = 0.0
+        for j in range(k):
+            q = nb[i, j]
+            d0, d1, d2 = points[q, 0] - c0, points[q, 1] - c1, points[q, 2] - c2
+            cov[0, 0] += d0 * d0
+            cov[0, 1] += d0 * d1
+            cov[0, 2] += d0 * d2
+            cov[1, 1] += d1 * d1
+            cov[1, 2] += d1 * d2
+            cov[2, 2] += d2 * d2
+        n0, n1, n2 = _least_axis(cov[0, 0], cov[0, 1], cov[0, 2], cov[1, 1], cov[1, 2], cov[2, 2])
+        p = start + i
+        o0, o1, o2 = c0 - points[p, 0], c1 - points[p, 1], c2 - points[p, 2]
+        along = o0 * n0 + o1 * n1 + o2 * n2
+        o0, o1, o2 = o0 - along * n0, o1 - along * n1, o2 - along * n2
+        normal[p, 0], normal[p, 1], normal[p, 2] = n0, n1, n2
+        shift[p] = np.sqrt(o0 * o0 + o1 * o1 + o2 * o2) / max(radius[i], 1e-12)
+
+
+@numba.njit(cache=True, nogil=True)
+def _least_axis(
+    a00: float, a01: float, a02: float, a11: float, a12: float, a22: float
+) -> tuple[float, float, float]:  # pragma: no cover - numba
+    """Returns the unit eigenvector of the smallest eigenvalue of the symmetric 3 x 3 matrix (cyclic Jacobi
+    rotations until the off-diagonal is below 1e-15 of the trace: a few sweeps)."""
+    a = np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]])
+    v = np.eye(3)
+    scale = abs(a00) + abs(a11) + abs(a22) + 1e-300
+    for _ in range(32):
+        off = abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2])
+        if off <= 1e-15 * scale:
+            break
+        for p, q in ((0, 1), (0, 2), (1, 2)):
+            if a[p, q] == 0.0:
+                continue
+            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+            c = 1.0 / np.sqrt(t * t + 1.0)
+            s = t * c
+            for r in range(3):  # a <- a J (columns p, q)
+                arp, arq = a[r, p], a[r, q]
+                a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
+            for r in range(3):  # a <- J^T a (rows p, q)
+                apr, aqr = a[p, r], a[q, r]
+                a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
+            for r in range(3):
+                vrp, vrq = v[r, p], v[r, q]
+                v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
+    m = 0
+    if a[1, 1] < a[m, m]:
+        m = 1
+    if a[2, 2] < a[m, m]:
+        m = 2
+    return v[0, m], v[1, m], v[2, m]
+
+
+@numba.njit(cache=True, nogil=True)
+def _bends(
+    normal: np.ndarray, near: np.ndarray, lo: int, hi: int, cos: float, least: int, out: np.ndarray
+) -> None:  # pragma: no cover - numba
+    """Sets ``out[p]`` for p in [lo, hi): are at least ``least`` of the normals of p's ``near`` points more
+    than arccos(``cos``) from p's own (either sign)?"""
+    for p in range(lo, hi):
+        turned = 0
+        for j in range(near.shape[1]):
+            q = near[p, j]
+            dot = normal[p, 0] * normal[q, 0] + normal[p, 1] * normal[q, 1] + normal[p, 2] * normal[q, 2]
+            if abs(dot) < cos:
+                turned += 1
+        out[p] = turned >= least
 
 
 def _distinct(directions: np.ndarray, config: PointEdgesConfig) -> list[np.ndarray]:

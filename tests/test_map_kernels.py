@@ -1,0 +1,99 @@
+"""The compiled loops of map building against the rules they implement, written plainly with numpy."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from linereg.map import creases, edge_refine, lines3d, point_edges
+
+
+def test_the_least_axis_is_the_eigenvector_of_the_smallest_eigenvalue():
+    rng = np.random.default_rng(0)
+    for _ in range(200):
+        # a flat patch's spread (the common case), and any symmetric positive matrix
+        spread = rng.normal(size=(20, 3)) * rng.choice([[1.0, 1.0, 0.01], [1.0, 0.3, 0.2]])
+        turn = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+        cov = (spread @ turn).T @ (spread @ turn)
+        axis = np.array(point_edges._least_axis(*cov[0], *cov[1, 1:], cov[2, 2]))
+        want = np.linalg.eigh(cov)[1][:, 0]
+        assert abs(np.linalg.norm(axis) - 1.0) < 1e-12
+        assert abs(abs(axis @ want) - 1.0) < 1e-9
+
+
+def test_normals_and_shifts_match_a_plain_fit():
+    rng = np.random.default_rng(1)
+    points = np.c_[rng.uniform(0, 1, (400, 2)), 0.001 * rng.normal(size=400)]
+    nb = np.array([np.argsort(np.linalg.norm(points - p, axis=1))[:12] for p in points])
+    radius = np.linalg.norm(points[nb[:, -1]] - points, axis=1)
+    normal, shift = np.zeros_like(points), np.zeros(len(points))
+    point_edges._fit_normals(points, 0, nb, radius, normal, shift)
+    q = points[nb]
+    centroid = q.mean(axis=1)
+    d = q - centroid[:, None]
+    want = np.linalg.eigh(np.einsum("nki,nkj->nij", d, d))[1][:, :, 0]
+    off = centroid - points
+    off -= want * np.einsum("ni,ni->n", off, want)[:, None]
+    assert np.allclose(np.abs(np.einsum("ni,ni->n", normal, want)), 1.0, atol=1e-9)
+    assert np.allclose(shift, np.linalg.norm(off, axis=1) / radius, atol=1e-9)
+
+
+def test_a_point_bends_where_enough_neighbours_normals_turn():
+    normal = np.array([[0.0, 0.0, 1.0]] * 5 + [[1.0, 0.0, 0.0]] * 3)
+    near = np.array([[1, 2, 3, 4], [5, 6, 7, 0], [5, 6, 0, 1], [5, 0, 1, 2], [0, 1, 2, 3]] * 2)[:8]
+    out = np.zeros(8, dtype=bool)
+    point_edges._bends(normal, near, 0, 8, np.cos(np.radians(30)), 2, out)
+    turned = (np.abs(np.einsum("nki,ni->nk", normal[near], normal)) < np.cos(np.radians(30))).sum(axis=1)
+    assert np.array_equal(out, turned >= 2)
+
+
+def test_closing_fills_short_gaps_only():
+    rng = np.random.default_rng(2)
+    for half in (1, 2, 3):
+        for _ in range(50):
+            mask = rng.random(30) < 0.6
+            got = creases._close_1d(mask, half)
+            n = len(mask)
+            dilated = np.array([mask[max(i - half, 0) : i + half + 1].any() for i in range(n)])
+            padded = np.r_[np.ones(half, bool), dilated, np.ones(half, bool)]
+            want = np.array([padded[i : i + 2 * half + 1].all() for i in range(n)])
+            assert np.array_equal(got, want)
+
+
+def test_beside_pairs_are_the_points_in_each_lines_band():
+    rng = np.random.default_rng(3)
+    beside = [rng.uniform(-1, 2, (50, 3)), np.zeros((0, 3)), rng.uniform(-1, 2, (30, 3))]
+    a = rng.uniform(0, 1, (6, 2))
+    angle = rng.uniform(0, np.pi, 6)
+    d = np.c_[np.cos(angle), np.sin(angle)]
+    out = np.c_[-d[:, 1], d[:, 0]] * rng.choice([-1.0, 1.0], (6, 1))
+    length, band = rng.uniform(0.2, 1.0, 6), rng.uniform(0.05, 0.3, 6)
+    regions = [(beside[0], 0, 2), (beside[1], 2, 4), (beside[2], 4, 6)]
+    got = edge_refine._beside_pairs(regions, (a, d, out, length, band))
+    want = []
+    for points, lo, hi in regions:
+        for k in range(lo, hi):
+            rel = points[:, :2] - a[k]
+            t, o = rel @ d[k], rel @ out[k]
+            keep = (t >= 0) & (t <= length[k]) & (np.abs(o) <= band[k])
+            want += [(k, tt, oo, z) for tt, oo, z in zip(t[keep], o[keep], points[keep, 2], strict=True)]
+    assert np.allclose(np.array(got), np.array(want).reshape(-1, 4), atol=1e-12)
+
+
+def test_beside_rows_keep_the_points_near_each_plane_and_inside_its_box():
+    rng = np.random.default_rng(4)
+    data = rng.uniform(-1, 1, (300, 3))
+    index = rng.integers(0, 300, 120)
+    first = np.array([0, 50, 50, 120])
+    origin = rng.uniform(-0.2, 0.2, (3, 3))
+    normal = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    basis = np.stack([np.linalg.qr(np.c_[n, rng.normal(size=(3, 2))])[0][:, 1:].T for n in normal])
+    lo, hi = np.full((3, 2), -0.5), np.full((3, 2), 0.4)
+    rows, kept = lines3d._beside_rows(data, index, first, origin, normal, basis, lo, hi, 0.3)
+    want = []
+    for i in range(3):
+        rel = data[index[first[i] : first[i + 1]]] - origin[i]
+        depth, uv = rel @ normal[i], rel @ basis[i].T
+        keep = (np.abs(depth) <= 0.3) & ((uv >= lo[i]) & (uv <= hi[i])).all(axis=1)
+        want.append(np.c_[uv[keep], depth[keep]])
+    assert np.array_equal(kept, [len(w) for w in want])
+    assert np.allclose(rows, np.concatenate(want), atol=1e-12)
