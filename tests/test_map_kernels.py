@@ -97,3 +97,71 @@ def test_beside_rows_keep_the_points_near_each_plane_and_inside_its_box():
         want.append(np.c_[uv[keep], depth[keep]])
     assert np.array_equal(kept, [len(w) for w in want])
     assert np.allclose(rows, np.concatenate(want), atol=1e-12)
+
+
+def test_group_minima_match_numpys_minimum_at():
+    rng = np.random.default_rng(5)
+    values = rng.normal(size=500)
+    values[[7, 300]] = np.nan
+    group = rng.integers(0, 40, 500)
+    want = np.full(45, np.inf)
+    with np.errstate(invalid="ignore"):
+        np.minimum.at(want, group, values)
+    assert np.array_equal(edge_refine._group_min(values, group, 45), want, equal_nan=True)
+
+
+def test_small_regions_spacing_matches_a_kd_tree_bit_for_bit():
+    from scipy.spatial import cKDTree
+
+    from linereg.map import planes
+
+    rng = np.random.default_rng(6)
+    points = rng.uniform(0, 1, (3000, 3)) * [1.0, 1.0, 0.01]
+    labels = rng.integers(0, 6, 3000)
+    labels[:2] = 6  # a region of two points: one neighbour
+    labels[2] = 7  # a region of one point: none
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(9)).astype(np.int64)
+    got = planes._small_region_medians(points, order, bounds, np.arange(8), 8)
+    for r in range(8):
+        member = points[order[bounds[r] : bounds[r + 1]]]
+        k = min(8, len(member) - 1)
+        if k < 1:
+            assert got[r] == 0.0
+            continue
+        dist, _ = cKDTree(member).query(member[:: max(1, len(member) // 500)], k=k + 1)
+        assert got[r] == np.median(dist[:, -1])
+
+
+def test_each_point_joins_the_nearest_pile_within_reach():
+    from scipy.spatial import cKDTree
+
+    rng = np.random.default_rng(7)
+    spacing, lo = 0.01, np.array([-0.02, -0.03])
+    uv = rng.uniform(0, 0.3, (2000, 2))
+    ij = np.floor((uv - lo) / spacing).astype(np.int64)
+    shape = tuple(ij.max(axis=0) + 3)
+    peaks = np.unique(rng.integers(0, min(shape), (60, 2)), axis=0)
+    label = np.full(shape, -1, dtype=np.int64)
+    label[peaks[:, 0], peaks[:, 1]] = np.arange(len(peaks))
+    got = point_edges._nearest_pile(uv, ij, label, lo, spacing, 1.5 * spacing)
+    dist, want = cKDTree(lo + (peaks + 0.5) * spacing).query(uv, distance_upper_bound=1.5 * spacing)
+    assert np.array_equal(got, np.where(np.isfinite(dist), want, -1))
+
+
+def test_section_moments_sum_the_offsets_of_each_slices_own_points():
+    rng = np.random.default_rng(8)
+    points = rng.uniform(-0.1, 1.1, (500, 3))
+    p0, d = np.array([[0.0, 0.5, 0.5]]), np.array([[1.0, 0.0, 0.0]])
+    seg, step = np.zeros(4, dtype=np.int64), np.full(4, 0.25)
+    mid = (np.arange(4) + 0.5) * 0.25
+    idx = np.arange(500)
+    n, sums, second = point_edges._section_moments(
+        points, np.r_[idx, idx, idx, idx], np.arange(5) * 500, seg, p0, d, mid, step, 0.2
+    )
+    rel = points - p0[0]
+    perp = rel - np.outer(rel @ d[0], d[0])
+    inside = (rel[:, 0] >= 0) & (rel[:, 0] <= 1) & (np.linalg.norm(perp, axis=1) <= 0.2)
+    assert n[0] == inside.sum()
+    assert np.allclose(sums[0], perp[inside].sum(axis=0))
+    assert np.allclose(second[0], perp[inside].T @ perp[inside])

@@ -176,6 +176,11 @@ def run_real(data_dir: Path, overrides: dict[str, Any], out: Path, overlay: bool
     scenes = [run_scene(f, overrides, out / "overlays" if overlay else None) for f in folders]
     rows = [summarise(s) for s in scenes]
     print(report.format_table(rows, COLUMNS))
+    warm = [b["warm_seconds"] for scene in scenes for b in scene["builds"]]
+    print(
+        f"s / 1e6 pts: LineMap.build's wall time per 10^6 points, after the child's start (imports, compiled "
+        f"kernels loaded once per process: {min(warm):.2f}-{max(warm):.2f} s, not counted)"
+    )
     print()
     print(report.format_table(kind_rows(scenes), KIND_COLUMNS))
     return {"scenes": scenes, "table": rows}

@@ -17,7 +17,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor
-from typing import Any, NamedTuple, TypeVar
+from typing import TYPE_CHECKING, Any, NamedTuple, TypeVar
 
 import numpy as np
 
@@ -30,6 +30,9 @@ from .lines3d import check_points, lines_and_surfaces
 from .planes import Planes, segment_planes, voxel_downsample
 from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
 from .surfaces import Surfaces, empty_surfaces, shift_surfaces
+
+if TYPE_CHECKING:
+    from .point_edges import EdgePoints
 
 logger = logging.getLogger(__name__)
 T = TypeVar("T")
@@ -107,10 +110,17 @@ def extract_map(
             sensed = run(
                 _sensor_edges, points, intensity if with_intensity else None, offset, profile, sensor, config
             )
-        planes = segment_planes(local, lines_config, progress)
         edges = None
         if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
-            edges = run(_point_edges, local, planes, profile, lines_config, config)
+            from .point_edges import find_edge_points
+
+            # the edge points need no planes: found while this thread grows them; the lines along the
+            # planes' directions after (the same one-thread pool: in that order)
+            at_points = run(find_edge_points, local, config.point)
+            planes = segment_planes(local, lines_config, progress)
+            edges = run(_point_edges, local, planes, profile, lines_config, config, at_points)
+        else:
+            planes = segment_planes(local, lines_config, progress)
         if progress:
             progress("lines")
         mesh_cell = config.mesh_cell_m if config.surfaces else np.inf
@@ -174,8 +184,10 @@ def _point_edges(
     profile: CloudProfile,
     lines_config: Lines3DConfig,
     config: MapBuildConfig,
+    found: Future[EdgePoints],
 ) -> np.ndarray:
-    """Returns (K, 6) point edges (``point_edges``) of (P, 3) local points along the scene's frame."""
+    """Returns (K, 6) point edges (``point_edges``) of (P, 3) local points along the scene's frame, from
+    the edge points ``found`` (done before this runs: the same one-thread pool ran it first)."""
     from .plane_directions import frame_directions
     from .point_edges import point_edges
 
@@ -183,7 +195,8 @@ def _point_edges(
     # direction, and a tilted plane's creases or a ragged segment's direction would collect them
     frame, _ = frame_directions(planes.normals, planes.counts * planes.spacing_m**2, config.directions)
     spacing = max(profile.spacing_m, lines_config.downsample_m)
-    return point_edges(local, frame, spacing, profile.noise_m, lines_config.min_length_m, config.point)
+    min_length = lines_config.min_length_m
+    return point_edges(local, frame, spacing, profile.noise_m, min_length, config.point, found.result())
 
 
 def _now(run: Callable[..., T], *args: Any) -> Future[T]:

@@ -1,18 +1,17 @@
 """Boundary lines of a planar region moved from its raster (cell-quantised) to where its points end (part of
 ``lines3d.extract``).
 
-All lines of a region are refined at once: their point neighbourhoods come from one batched KD-tree
-query, and the per-bin edge estimates and per-line fits are grouped sums over flat arrays.
+All lines of all regions are refined at once: each line's points (its region's within its band) come
+from one compiled loop over the regions' points, and the per-bin edge estimates and per-line fits are
+grouped sums over flat arrays.
 """
 
 from __future__ import annotations
 
 import numba
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
-from .neighbours import flat_lists
 
 
 def refine_edges(
@@ -49,7 +48,7 @@ def refine_regions(
     fixed: list[np.ndarray],
 ) -> list[tuple[np.ndarray, np.ndarray]]:
     """Returns ``refine_edges`` of each region (its uv points, lines, band, beside points and fixed lines)
-    computed at once: the neighbour searches run per region (a KD-tree of its own plane coordinates), the
+    computed at once: each line's points (those of its region within its band) in one compiled loop, the
     rest as grouped sums over every region's lines (a room holds a thousand small regions: a call each
     cost more than the sums). A line's sums add the same numbers in the same order as one region alone."""
     sizes = np.array([len(x) for x in lines], dtype=np.int64)
@@ -64,16 +63,13 @@ def refine_regions(
     length = np.linalg.norm(b - a, axis=1)
     d = (b - a) / length[:, None]
     m = np.stack([-d[:, 1], d[:, 0]], axis=1)
+    base = np.r_[0, np.cumsum([len(u) for u in uvs])].astype(np.int64)
+    uv = np.concatenate([np.zeros((0, 2)), *uvs])
+    region = np.repeat(np.arange(len(lines)), sizes)
     has = np.flatnonzero(sizes > 0)
-    base = np.r_[0, np.cumsum([len(u) for u in uvs])]
-    uv = np.concatenate(uvs)
-    trees = [(cKDTree(uvs[r]), first[r], first[r + 1], base[r]) for r in has]
-    line, point = _near_pairs(trees, a, d, length, band, uv)
-    rel = uv[point] - a[line]
-    t, s = np.einsum("pk,pk->p", rel, d[line]), np.einsum("pk,pk->p", rel, m[line])
-    bl = band[line]
-    keep = (np.abs(s) <= bl) & (t >= 0.5 * bl) & (t <= length[line] - 0.5 * bl)
-    line, t, s = line[keep], t[keep], s[keep]
+    # each line's points within its band across, half a band in from its ends
+    near = _in_bands(uv, base, region, a, d, m, length, band, 0.5)
+    line, t, s = near[:, 0].astype(np.int64), near[:, 1], near[:, 2]
     count = np.bincount(line, minlength=k)
     t_lo, t_hi = _group_min(t, line, k), -_group_min(-t, line, k)
     # no points along most of it: the raster's closing bridged a gap, no boundary of the surface
@@ -123,103 +119,61 @@ def _beside_pairs(besides: list[tuple[np.ndarray, int, int]], geometry: tuple[np
     owner = np.full(len(a), -1, dtype=np.int64)  # the region of each line, among those with points
     for j, (_, lo, hi) in enumerate(besides):
         owner[lo:hi] = j
-    return _pairs_in_bands(beside, first, owner, a, d, out, length, band)
+    return _in_bands(beside, first, owner, a, d, out, length, band, 0.0)
 
 
 @numba.njit(cache=True, nogil=True)
-def _pairs_in_bands(
-    beside: np.ndarray,
+def _in_bands(
+    points: np.ndarray,
     first: np.ndarray,
     owner: np.ndarray,
     a: np.ndarray,
     d: np.ndarray,
-    out: np.ndarray,
+    across: np.ndarray,
     length: np.ndarray,
     band: np.ndarray,
+    margin: float,
 ) -> np.ndarray:  # pragma: no cover - numba
-    """Returns ``_beside_pairs``' (q, 4) rows: for each line k of region owner[k] >= 0 (its points
-    beside[first[r]:first[r + 1]]), every point with 0 <= t <= length[k] and |o| <= band[k]. Two passes,
-    counting then filling: a large region's lines each see all its points."""
-    pairs = np.empty((0, 4))
+    """Returns (q, 4) rows line k, t (along d[k] from a[k]), o (along across[k]), third column of the point
+    (0 for (n, 2) points): for each line k of region owner[k] >= 0 (its points points[first[r]:first[r + 1]]),
+    every point with margin band[k] <= t <= length[k] - margin band[k] and |o| <= band[k], line after line.
+    Two passes, counting then filling: a large region's lines each see all its points."""
+    rows = np.empty((0, 4))
     for fill in (False, True):
         n = 0
         for k in range(len(owner)):
             r = owner[k]
             if r < 0:
                 continue
+            lo, hi = margin * band[k], length[k] - margin * band[k]
             for p in range(first[r], first[r + 1]):
-                r0, r1 = beside[p, 0] - a[k, 0], beside[p, 1] - a[k, 1]
+                r0, r1 = points[p, 0] - a[k, 0], points[p, 1] - a[k, 1]
                 t = r0 * d[k, 0] + r1 * d[k, 1]
-                o = r0 * out[k, 0] + r1 * out[k, 1]
-                if t >= 0.0 and t <= length[k] and abs(o) <= band[k] and np.isfinite(o):
+                o = r0 * across[k, 0] + r1 * across[k, 1]
+                if t >= lo and t <= hi and abs(o) <= band[k] and np.isfinite(o):
                     if fill:
-                        pairs[n, 0], pairs[n, 1], pairs[n, 2], pairs[n, 3] = k, t, o, beside[p, 2]
+                        rows[n, 0], rows[n, 1], rows[n, 2] = k, t, o
+                        rows[n, 3] = points[p, 2] if points.shape[1] > 2 else 0.0
                     n += 1
         if not fill:
-            pairs = np.empty((n, 4))
-    return pairs
-
-
-def _samples(
-    a: np.ndarray, d: np.ndarray, length: np.ndarray, band: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (S,) line and step of samples taken every band along each (k,) line from its start, (k,)
-    samples per line and the (S, 2) samples."""
-    count = np.ceil((length + band) / band).astype(np.int64)
-    line = np.repeat(np.arange(len(a)), count)
-    step = np.arange(len(line)) - np.repeat(np.cumsum(count) - count, count)
-    return line, step, count, a[line] + (step * band[line])[:, None] * d[line]
-
-
-def _own_stretch(
-    line: np.ndarray,
-    step: np.ndarray,
-    point: np.ndarray,
-    data: np.ndarray,
-    a: np.ndarray,
-    d: np.ndarray,
-    count: np.ndarray,
-    band: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns the (line, point) pairs found by the sample whose stretch holds the point: a point is
-    found by neighbouring samples too."""
-    t = np.einsum("pk,pk->p", data[point] - a[line], d[line])
-    mine = np.clip(np.floor(t / band[line] + 0.5), 0, count[line] - 1) == step
-    return line[mine], point[mine]
-
-
-def _near_pairs(
-    trees: list[tuple[cKDTree, int, int, int]],
-    a: np.ndarray,
-    d: np.ndarray,
-    length: np.ndarray,
-    band: np.ndarray,
-    data: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((q,) line, (q,) point) distinct pairs of points near each line: all within its band of it
-    along its length, and a few more (within hypot(band, band / 2) of samples taken every band).
-    ``trees``: per region a KD-tree of its points (rows ``base`` on of the (N, 2) ``data``), its lines
-    [lo, hi) and ``base``. Pairs come in each tree's order: the sums over them add in that order."""
-    line, step, count, samples = _samples(a, d, length, band)
-    start = np.r_[0, np.cumsum(count)]
-    points, lines, steps = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0, np.int64)]
-    for tree, lo, hi, base in trees:
-        radius = float(np.hypot(band[lo], 0.5 * band[lo]))
-        part = slice(start[lo], start[hi])
-        found = tree.query_ball_point(samples[part], radius, return_sorted=False)
-        size, hits = flat_lists(found)
-        points.append(hits + base)
-        lines.append(np.repeat(line[part], size))
-        steps.append(np.repeat(step[part], size))
-    point, line, step = np.concatenate(points), np.concatenate(lines), np.concatenate(steps)
-    return _own_stretch(line, step, point, data, a, d, count, band)
+            rows = np.empty((n, 4))
+    return rows
 
 
 def _group_min(values: np.ndarray, group: np.ndarray, num: int) -> np.ndarray:
     """Returns (num,) the minimum of values per group (inf for empty groups)."""
     out = np.full(num, np.inf)
-    np.minimum.at(out, group, values)
+    _min_into(out, group, values)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _min_into(out: np.ndarray, group: np.ndarray, values: np.ndarray) -> None:  # pragma: no cover - numba
+    """out[group[i]] = minimum(out[group[i]], values[i]) for every i: ``np.minimum.at`` in one loop (a NaN
+    wins, as there)."""
+    for i in range(len(group)):
+        if values[i] < out[group[i]] or np.isnan(values[i]):
+            out[group[i]] = values[i]
 
 
 def _edge_lines(
@@ -288,7 +242,7 @@ def _first_beyond(
     idx = np.minimum(np.searchsorted(key, wanted), len(key) - 1)
     o = off[valid, 2]
     hit = (key[idx] == wanted) & (o > top[idx]) & (o <= top[idx] + band[line[valid]])
-    np.minimum.at(first, idx[hit], o[hit])
+    _min_into(first, idx[hit], o[hit])
     return first
 
 

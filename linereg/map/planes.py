@@ -10,10 +10,11 @@ All coordinates are local (the caller subtracts a georeferenced offset first).
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Iterator
+from collections.abc import Callable
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass, replace
 
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -35,6 +36,7 @@ from .voxels import (
 __all__ = ["Planes", "fit_planes", "grow_regions", "segment_planes", "voxel_downsample"]
 
 logger = logging.getLogger(__name__)
+BRUTE_POINTS = 1000  # regions up to this many points find their spacing without a KD-tree
 
 
 @dataclass(frozen=True)
@@ -124,7 +126,7 @@ def segment_planes(
         spacing = _region_spacing(points, labels, num, pool)
         counts, cen, nrm, _ = fit_planes(points, labels, num)
         pairs = _touching(grid, labels)
-        spacing_m = np.fromiter(spacing, dtype=np.float64, count=num)
+        spacing_m = spacing()
     logger.debug("%d regions, %d touching pairs", num, len(pairs))
     return Planes(labels, nrm, cen, counts, pairs[:, :2], spacing_m)
 
@@ -145,28 +147,85 @@ def _drop_off_plane(
 
 def _region_spacing(
     points: np.ndarray, labels: np.ndarray, num: int, pool: Executor, neighbours: int = 8
-) -> Iterator[float]:
-    """Returns the (R,) typical point spacings (m) of the regions, computed on ``pool``: k points within r
-    of a point cover pi r^2 of the plane, so r_k sqrt(pi / k) (median over up to 500 of the region's points).
+) -> Callable[[], np.ndarray]:
+    """Returns a call that returns the (R,) typical point spacings (m) of the regions, computed on
+    ``pool``: k points within r of a point cover pi r^2 of the plane, so r_k sqrt(pi / k) (median over
+    up to 500 of the region's points).
 
     Nearest neighbours, not points per voxel: a thin strip (a 25 cm ledge) or a region cut by voxel
-    borders fills only part of its voxels, which made it look several times sparser than it is.
+    borders fills only part of its voxels, which made it look several times sparser than it is. A region
+    of up to BRUTE_POINTS points compares its sample with all its points (one compiled loop for all of
+    them: a room holds a thousand small regions), a larger one queries a KD-tree; the distances are the
+    same bit for bit.
     """
     order = group_order(labels, num)
     bounds = np.searchsorted(labels[order], np.arange(num + 1))
+    sizes = np.diff(bounds)
+    small = np.flatnonzero(sizes <= BRUTE_POINTS)
+    large = np.flatnonzero(sizes > BRUTE_POINTS)
 
     def spacing(r: int) -> float:
         member = points[order[bounds[r] : bounds[r + 1]]]
         k = min(neighbours, len(member) - 1)
-        if k < 1:
-            return 0.0
         sample = member[:: max(1, len(member) // 500)]
         # sliding-midpoint trees build faster; the neighbours found are the same
         tree = cKDTree(member, balanced_tree=False, compact_nodes=False)
         dist, _ = tree.query(sample, k=k + 1)  # the first neighbour is the point itself
-        return float(np.median(dist[:, -1])) * np.sqrt(np.pi / k)
+        return float(np.median(dist[:, -1]))
 
-    return pool.map(spacing, range(num))
+    brute = pool.submit(_small_region_medians, points, order, bounds.astype(np.int64), small, neighbours)
+    found = pool.map(spacing, large)
+
+    def result() -> np.ndarray:
+        median = np.zeros(num)
+        median[large] = np.fromiter(found, dtype=np.float64, count=len(large))
+        median[small] = brute.result()
+        k = np.minimum(neighbours, sizes - 1)
+        out = np.zeros(num)
+        ok = k >= 1
+        out[ok] = median[ok] * np.sqrt(np.pi / k[ok])
+        return out
+
+    return result
+
+
+@numba.njit(cache=True, nogil=True)
+def _small_region_medians(
+    points: np.ndarray, order: np.ndarray, bounds: np.ndarray, regions: np.ndarray, neighbours: int
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns per region r of ``regions`` (its points points[order[bounds[r]:bounds[r + 1]]]) the median
+    over every max(1, n // 500)-th of its n points of the distance to its k-th nearest other point
+    (k = min(neighbours, n - 1); 0.0 when k < 1), by comparing with all its points."""
+    out = np.zeros(len(regions))
+    for i in range(len(regions)):
+        lo, hi = bounds[regions[i]], bounds[regions[i] + 1]
+        n = hi - lo
+        k = min(neighbours, n - 1)
+        if k < 1:
+            continue
+        step = max(1, n // 500)
+        kth = np.empty((n + step - 1) // step)
+        best = np.empty(k + 1)  # the point itself is the first
+        for s in range(len(kth)):
+            p = order[lo + s * step]
+            best[:] = np.inf
+            for m in range(lo, hi):
+                q = order[m]
+                dx, dy, dz = (
+                    points[q, 0] - points[p, 0],
+                    points[q, 1] - points[p, 1],
+                    points[q, 2] - points[p, 2],
+                )
+                d2 = dx * dx + dy * dy + dz * dz
+                if d2 < best[k]:
+                    j = k
+                    while j > 0 and best[j - 1] > d2:
+                        best[j] = best[j - 1]
+                        j -= 1
+                    best[j] = d2
+            kth[s] = np.sqrt(best[k])
+        out[i] = np.median(kth)
+    return out
 
 
 def _voxel_labels(of_point: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -24,6 +24,7 @@ Measured on the shared RGB-D rooms (``linereg bench lines3d --real``, docs/measu
 from __future__ import annotations
 
 from concurrent.futures import ThreadPoolExecutor
+from typing import NamedTuple
 
 import numba
 import numpy as np
@@ -34,10 +35,28 @@ from ..config import PointEdgesConfig
 from ..threads import thread_count
 from .neighbours import flat_lists
 
-__all__ = ["edge_points", "point_edges"]
+__all__ = ["EdgePoints", "edge_points", "find_edge_points", "point_edges"]
 
 MIN_SECTION_POINTS = 10  # a cross-section of fewer points has no shape to judge
 BLOCK_POINTS = 4096  # the fewest points of a block of neighbour fits (one thread's share of the work)
+
+
+class EdgePoints(NamedTuple):
+    """A cloud's points where the surface bends or ends (``find_edge_points``): the (E, 3) ``edge`` points
+    and the KD-tree of all the points (None: too few points to judge)."""
+
+    edge: np.ndarray
+    tree: cKDTree | None
+
+
+def find_edge_points(points: np.ndarray, config: PointEdgesConfig | None = None) -> EdgePoints:
+    """Returns the EdgePoints of (P, 3) points (``edge_points``): the first step of ``point_edges``, which
+    needs no directions (map building starts it before the planes that give them)."""
+    config = config or PointEdgesConfig()
+    if len(points) < config.neighbours + 1:
+        return EdgePoints(np.zeros((0, 3)), None)
+    tree = cKDTree(points)
+    return EdgePoints(points[edge_points(points, tree, config)], tree)
 
 
 def point_edges(
@@ -47,20 +66,20 @@ def point_edges(
     noise_m: float,
     min_length_m: float,
     config: PointEdgesConfig | None = None,
+    found: EdgePoints | None = None,
 ) -> np.ndarray:
     """Returns (K, 6) float64 segments along the (D, 3) unit ``directions`` where the surface of the
     (P, 3) ``points`` (evenly sampled ``spacing_m`` apart, ``noise_m`` noise) bends or ends, at least
-    ``min_length_m`` long."""
+    ``min_length_m`` long; ``found``: their ``find_edge_points``, if already known."""
     config = config or PointEdgesConfig()
     directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     if len(points) < config.neighbours + 1 or len(directions) == 0 or spacing_m <= 0:
         return np.zeros((0, 6))
-    tree = cKDTree(points)
-    edge = points[edge_points(points, tree, config)]
-    if len(edge) == 0:
+    edge, tree = found if found is not None else find_edge_points(points, config)
+    if len(edge) == 0 or tree is None:
         return np.zeros((0, 6))
-    found = [_runs_along(edge, d, spacing_m, min_length_m, config) for d in _distinct(directions, config)]
-    segments = np.concatenate(found) if found else np.zeros((0, 6))
+    runs = [_runs_along(edge, d, spacing_m, min_length_m, config) for d in _distinct(directions, config)]
+    segments = np.concatenate(runs) if runs else np.zeros((0, 6))
     if len(segments):
         segments = segments[~_flat(segments, points, tree, spacing_m, noise_m, config)]
     return segments
@@ -227,8 +246,10 @@ def _runs_along(
     if len(peaks) == 0:
         return np.zeros((0, 6))
     centres = lo + (peaks + 0.5) * spacing
-    dist, pile = cKDTree(centres).query(uv, distance_upper_bound=config.width_spacings * spacing)
-    on = np.isfinite(dist)
+    label = np.full(shape, -1, dtype=np.int64)
+    label[peaks[:, 0], peaks[:, 1]] = np.arange(len(peaks))
+    pile = _nearest_pile(uv, ij, label, lo, spacing, config.width_spacings * spacing)
+    on = pile >= 0
     uv, t, pile = uv[on], t[on], pile[on]
     if len(t) == 0:
         return np.zeros((0, 6))
@@ -272,23 +293,9 @@ def _flat(
         p0[seg] + mid[:, None] * d[seg], np.hypot(radius, 0.5 * step), workers=thread_count(8)
     )
     sizes, idx = flat_lists(near)
-    slice_of = np.repeat(np.arange(len(seg)), sizes)
-    owner = seg[slice_of]
-    rel = points[idx] - p0[owner]
-    along = np.einsum("ni,ni->n", rel, d[owner])
-    perp = rel - along[:, None] * d[owner]
     # each point counts in its own slice only (the balls overlap)
-    inside = (np.abs(along - mid[slice_of]) <= 0.5 * step[slice_of]) & (
-        np.linalg.norm(perp, axis=1) <= radius
-    )
-    owner, perp = owner[inside], perp[inside]
-    n = np.bincount(owner, minlength=len(segments)).astype(np.float64)
-    sums = np.stack([np.bincount(owner, perp[:, k], len(segments)) for k in range(3)], axis=1)
+    n, sums, second = _section_moments(points, idx, np.r_[0, np.cumsum(sizes)], seg, p0, d, mid, step, radius)
     mean = sums / np.maximum(n, 1.0)[:, None]
-    second = np.zeros((len(segments), 3, 3))
-    for i in range(3):
-        for j in range(i, 3):
-            second[:, i, j] = second[:, j, i] = np.bincount(owner, perp[:, i] * perp[:, j], len(segments))
     cov = second / np.maximum(n, 1.0)[:, None, None] - np.einsum("ni,nj->nij", mean, mean)
     # the cross-section lies across d: its covariance has a zero eigenvalue along d, then thickness, width
     values = np.sqrt(np.maximum(np.linalg.eigvalsh(cov), 0.0))
@@ -299,3 +306,72 @@ def _flat(
     )
     centred = np.linalg.norm(mean, axis=1) < config.centred_share * radius
     return (n < MIN_SECTION_POINTS) | (flat & centred)
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_pile(
+    uv: np.ndarray, ij: np.ndarray, label: np.ndarray, lo: np.ndarray, spacing: float, width: float
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns (E,) the pile (``label`` of its raster cell, -1: none) whose centre (the cell's centre) is
+    nearest each point of (E, 2) ``uv`` in raster cell ``ij``, if within ``width``; -1 otherwise."""
+    reach = int(np.ceil(width / spacing + 0.5))
+    out = np.full(len(uv), -1, dtype=np.int64)
+    for p in range(len(uv)):
+        best = width * width
+        for i in range(max(ij[p, 0] - reach, 0), min(ij[p, 0] + reach + 1, label.shape[0])):
+            for j in range(max(ij[p, 1] - reach, 0), min(ij[p, 1] + reach + 1, label.shape[1])):
+                if label[i, j] < 0:
+                    continue
+                du = uv[p, 0] - (lo[0] + (i + 0.5) * spacing)
+                dv = uv[p, 1] - (lo[1] + (j + 0.5) * spacing)
+                d2 = du * du + dv * dv
+                if d2 < best or (d2 == best and out[p] < 0):
+                    best = d2
+                    out[p] = label[i, j]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _section_moments(
+    points: np.ndarray,
+    idx: np.ndarray,
+    first: np.ndarray,
+    seg: np.ndarray,
+    p0: np.ndarray,
+    d: np.ndarray,
+    mid: np.ndarray,
+    step: np.ndarray,
+    radius: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns per segment (K,) the count, (K, 3) sum and (K, 3, 3) second moment of the offsets from it
+    of the points idx[first[s]:first[s + 1]] found for slice s (of segment seg[s], from p0 along unit d,
+    its middle ``mid[s]`` along and ``step[s]`` long) that lie in that slice, within ``radius`` of the
+    segment."""
+    k = len(p0)
+    n = np.zeros(k)
+    sums = np.zeros((k, 3))
+    second = np.zeros((k, 3, 3))
+    for s in range(len(seg)):
+        g = seg[s]
+        for m in range(first[s], first[s + 1]):
+            q = idx[m]
+            r0, r1, r2 = points[q, 0] - p0[g, 0], points[q, 1] - p0[g, 1], points[q, 2] - p0[g, 2]
+            along = r0 * d[g, 0] + r1 * d[g, 1] + r2 * d[g, 2]
+            e0, e1, e2 = r0 - along * d[g, 0], r1 - along * d[g, 1], r2 - along * d[g, 2]
+            if abs(along - mid[s]) > 0.5 * step[s] or np.sqrt(e0 * e0 + e1 * e1 + e2 * e2) > radius:
+                continue
+            n[g] += 1.0
+            sums[g, 0] += e0
+            sums[g, 1] += e1
+            sums[g, 2] += e2
+            second[g, 0, 0] += e0 * e0
+            second[g, 0, 1] += e0 * e1
+            second[g, 0, 2] += e0 * e2
+            second[g, 1, 1] += e1 * e1
+            second[g, 1, 2] += e1 * e2
+            second[g, 2, 2] += e2 * e2
+    for g in range(k):
+        second[g, 1, 0] = second[g, 0, 1]
+        second[g, 2, 0] = second[g, 0, 2]
+        second[g, 2, 1] = second[g, 1, 2]
+    return n, sums, second
