@@ -168,3 +168,16 @@ def test_section_moments_sum_the_offsets_of_each_slices_own_points():
     assert n[0] == inside.sum()
     assert np.allclose(sums[0], perp[inside].sum(axis=0))
     assert np.allclose(second[0], perp[inside].T @ perp[inside])
+
+
+def test_the_median_by_selection_is_numpys():
+    from linereg.map import planes
+
+    rng = np.random.default_rng(9)
+    for n in [1, 2, 3, 4, 5, 10, 11, 100, 501]:
+        for _ in range(20):
+            values = rng.normal(size=n)
+            if n > 3:
+                values[: n // 3] = values[n // 2]  # ties
+            rng.shuffle(values)
+            assert planes._median(values.copy()) == np.median(values)

@@ -92,76 +92,38 @@ def _crease_runs(
 
     A region's points near a line are those within 3 cells of it and within 4.5 cells of one of its
     samples spaced 3 cells from ``enter`` to past ``leave`` (the span inside both regions' boxes)."""
-    found = [(0.0, 0.0, 0.0, 0.0, 0.0, 0.0) for _ in range(0)]
+    out = np.empty((16, 6))
+    found = 0
     for k in range(len(a)):
         r = 3.0 * cell[k]
-        d0, d1, d2 = direction[k, 0], direction[k, 1], direction[k, 2]
-        o0, o1, o2 = origin[k, 0], origin[k, 1], origin[k, 2]
         count = int(np.ceil((leave[k] + r - enter[k]) / r))
-        sides_t = []
-        sides_perp = []
-        for region in (a[k], b[k]):
-            lo_m, hi_m = first[region], first[region + 1]
-            t_side = np.empty(hi_m - lo_m)
-            perp_side = np.empty((hi_m - lo_m, 3))
-            n = 0
-            for m in range(lo_m, hi_m):
-                q = flat[m]
-                p0, p1, p2 = points[q, 0] - o0, points[q, 1] - o1, points[q, 2] - o2
-                t = p0 * d0 + p1 * d1 + p2 * d2
-                e0, e1, e2 = p0 - t * d0, p1 - t * d1, p2 - t * d2
-                if e0 * e0 + e1 * e1 + e2 * e2 > r * r:
-                    continue
-                # the nearest samples of the line (at enter + i r) within 1.5 r
-                i = int(np.floor((t - enter[k]) / r))
-                hit = False
-                for j in (i, i + 1):
-                    if j < 0 or j >= count:
-                        continue
-                    s = enter[k] + j * r
-                    f0 = points[q, 0] - (o0 + s * d0)
-                    f1 = points[q, 1] - (o1 + s * d1)
-                    f2 = points[q, 2] - (o2 + s * d2)
-                    if f0 * f0 + f1 * f1 + f2 * f2 <= 2.25 * r * r:
-                        hit = True
-                if not hit and i >= count:
-                    s = enter[k] + (count - 1) * r
-                    f0, f1, f2 = (
-                        points[q, 0] - (o0 + s * d0),
-                        points[q, 1] - (o1 + s * d1),
-                        points[q, 2] - (o2 + s * d2),
-                    )
-                    hit = f0 * f0 + f1 * f1 + f2 * f2 <= 2.25 * r * r
-                if not hit and i < 0:
-                    s = enter[k]
-                    f0, f1, f2 = (
-                        points[q, 0] - (o0 + s * d0),
-                        points[q, 1] - (o1 + s * d1),
-                        points[q, 2] - (o2 + s * d2),
-                    )
-                    hit = f0 * f0 + f1 * f1 + f2 * f2 <= 2.25 * r * r
-                if not hit:
-                    continue
-                t_side[n] = t
-                perp_side[n, 0], perp_side[n, 1], perp_side[n, 2] = e0, e1, e2
-                n += 1
-            sides_t.append(t_side[:n])
-            sides_perp.append(perp_side[:n])
-        ta, tb = sides_t[0], sides_t[1]
-        if len(ta) == 0 or len(tb) == 0:
+        size_a, size_b = first[a[k] + 1] - first[a[k]], first[b[k] + 1] - first[b[k]]
+        ta, perp_a = np.empty(size_a), np.empty((size_a, 3))
+        tb, perp_b = np.empty(size_b), np.empty((size_b, 3))
+        na = _near_side(points, flat, first[a[k]], first[a[k] + 1], origin[k], direction[k], enter[k], r,
+                        count, ta, perp_a)  # fmt: skip
+        nb = _near_side(points, flat, first[b[k]], first[b[k] + 1], origin[k], direction[k], enter[k], r,
+                        count, tb, perp_b)  # fmt: skip
+        if na == 0 or nb == 0:
             continue
-        lo, hi = max(ta.min(), tb.min()), min(ta.max(), tb.max())
+        lo_a = hi_a = ta[0]
+        for i in range(na):
+            lo_a, hi_a = min(lo_a, ta[i]), max(hi_a, ta[i])
+        lo_b = hi_b = tb[0]
+        for i in range(nb):
+            lo_b, hi_b = min(lo_b, tb[i]), max(hi_b, tb[i])
+        lo, hi = max(lo_a, lo_b), min(hi_a, hi_b)
         if hi - lo < min_length:
             continue
         c = cell[k]
         bins = int((hi - lo) / c) + 1
-        both = np.ones(bins, dtype=np.bool_)
-        for t_side in (ta, tb):
-            occupied = np.zeros(bins, dtype=np.bool_)
-            for t in t_side:
-                if t >= lo and t <= hi:
-                    occupied[int((t - lo) / c)] = True
-            both &= occupied
+        in_a, both = np.zeros(bins, dtype=np.bool_), np.zeros(bins, dtype=np.bool_)
+        for i in range(na):
+            if ta[i] >= lo and ta[i] <= hi:
+                in_a[int((ta[i] - lo) / c)] = True
+        for i in range(nb):
+            if tb[i] >= lo and tb[i] <= hi and in_a[int((tb[i] - lo) / c)]:
+                both[int((tb[i] - lo) / c)] = True
         closed = _close_1d(both, gap_half[k])
         i = 0
         while i < bins:
@@ -175,15 +137,58 @@ def _crease_runs(
             i = j
             if t1 - t0 < min_length:
                 continue
-            if _one_sided(ta, sides_perp[0], t0, t1, share) and _one_sided(tb, sides_perp[1], t0, t1, share):
-                found.append(
-                    (o0 + t0 * d0, o1 + t0 * d1, o2 + t0 * d2, o0 + t1 * d0, o1 + t1 * d1, o2 + t1 * d2)
-                )
-    out = np.empty((len(found), 6))
-    for i, segment in enumerate(found):
-        for j in range(6):
-            out[i, j] = segment[j]
-    return out
+            if _one_sided(ta[:na], perp_a[:na], t0, t1, share) and _one_sided(
+                tb[:nb], perp_b[:nb], t0, t1, share
+            ):
+                if found == len(out):
+                    grown = np.empty((2 * len(out), 6))
+                    for g in range(found):  # element by element: a slice copy costs seconds to compile
+                        for e in range(6):
+                            grown[g, e] = out[g, e]
+                    out = grown
+                for e in range(3):
+                    out[found, e] = origin[k, e] + t0 * direction[k, e]
+                    out[found, 3 + e] = origin[k, e] + t1 * direction[k, e]
+                found += 1
+    return out[:found]
+
+
+@numba.njit(cache=True, nogil=True)
+def _near_side(
+    points: np.ndarray,
+    flat: np.ndarray,
+    lo: int,
+    hi: int,
+    origin: np.ndarray,
+    direction: np.ndarray,
+    enter: float,
+    r: float,
+    count: int,
+    t_out: np.ndarray,
+    perp_out: np.ndarray,
+) -> int:  # pragma: no cover - numba
+    """Writes the line parameter and offset from the line (origin + t direction) of each point
+    points[flat[lo:hi]] within ``r`` of it and within 1.5 r of its nearest of the ``count`` samples
+    enter + i r, in their order; returns how many."""
+    n = 0
+    for m in range(lo, hi):
+        q = flat[m]
+        p0, p1, p2 = points[q, 0] - origin[0], points[q, 1] - origin[1], points[q, 2] - origin[2]
+        t = p0 * direction[0] + p1 * direction[1] + p2 * direction[2]
+        e0, e1, e2 = p0 - t * direction[0], p1 - t * direction[1], p2 - t * direction[2]
+        if e0 * e0 + e1 * e1 + e2 * e2 > r * r:
+            continue
+        # the nearest sample along the line is the nearest in space: the offset across is the same
+        s = enter + min(max(np.floor((t - enter) / r + 0.5), 0.0), count - 1.0) * r
+        f0 = points[q, 0] - (origin[0] + s * direction[0])
+        f1 = points[q, 1] - (origin[1] + s * direction[1])
+        f2 = points[q, 2] - (origin[2] + s * direction[2])
+        if f0 * f0 + f1 * f1 + f2 * f2 > 2.25 * r * r:
+            continue
+        t_out[n] = t
+        perp_out[n, 0], perp_out[n, 1], perp_out[n, 2] = e0, e1, e2
+        n += 1
+    return n
 
 
 @numba.njit(cache=True, nogil=True)
@@ -222,9 +227,11 @@ def _close_1d(mask: np.ndarray, half: int) -> np.ndarray:  # pragma: no cover - 
     dilated = np.zeros(n, dtype=np.bool_)
     for i in range(n):
         if mask[i]:
-            dilated[max(i - half, 0) : min(i + half + 1, n)] = True
+            for j in range(max(i - half, 0), min(i + half + 1, n)):  # loops: slices compile slowly
+                dilated[j] = True
     closed = np.ones(n, dtype=np.bool_)
     for i in range(n):
         if not dilated[i]:
-            closed[max(i - half, 0) : min(i + half + 1, n)] = False
+            for j in range(max(i - half, 0), min(i + half + 1, n)):
+                closed[j] = False
     return closed

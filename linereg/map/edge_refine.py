@@ -145,7 +145,7 @@ def _in_bands(
     the region's size (a facade holds 10^5 points and hundreds of lines).
     """
     rows = np.empty((0, 4))
-    for fill in (False, True):
+    for fill in range(2):  # count, then fill (a loop over a tuple costs a second to compile)
         n = 0
         region, h = -1, -1.0
         lo0 = lo1 = 0.0
@@ -168,11 +168,19 @@ def _in_bands(
                 key = np.empty(first[r + 1] - first[r], dtype=np.int64)
                 for p in range(first[r], first[r + 1]):
                     key[p - first[r]] = int((points[p, 0] - lo0) / h) * ny + int((points[p, 1] - lo1) / h)
-                order = np.argsort(key, kind="mergesort") + first[r]
+                # counting sort: the points of a cell in their order
                 start = np.zeros(nx * ny + 1, dtype=np.int64)
                 for c in key:
                     start[c + 1] += 1
-                start = np.cumsum(start)
+                for c in range(nx * ny):
+                    start[c + 1] += start[c]
+                placed = np.empty(nx * ny, dtype=np.int64)
+                for c in range(nx * ny):
+                    placed[c] = start[c]
+                order = np.empty(len(key), dtype=np.int64)
+                for i in range(len(key)):
+                    order[placed[key[i]]] = first[r] + i
+                    placed[key[i]] += 1
             count = int(np.ceil((length[k] + band[k]) / band[k]))
             lo_t, hi_t = margin * band[k], length[k] - margin * band[k]
             for s in range(count):

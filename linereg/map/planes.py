@@ -208,7 +208,8 @@ def _small_region_medians(
         best = np.empty(k + 1)  # the point itself is the first
         for s in range(len(kth)):
             p = order[lo + s * step]
-            best[:] = np.inf
+            for j in range(k + 1):
+                best[j] = np.inf
             for m in range(lo, hi):
                 q = order[m]
                 dx, dy, dz = (
@@ -224,8 +225,41 @@ def _small_region_medians(
                         j -= 1
                     best[j] = d2
             kth[s] = np.sqrt(best[k])
-        out[i] = np.median(kth)
+        out[i] = _median(kth)
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _median(values: np.ndarray) -> float:  # pragma: no cover - numba
+    """Returns the median of the (n >= 1,) ``values`` (reordered in place), as ``np.median`` gives it: the
+    middle value, or the mean of the two middle ones. Quickselect (Hoare partitions round the middle)."""
+    n = len(values)
+    mid = n // 2
+    lo, hi = 0, n - 1
+    while lo < hi:
+        pivot = values[(lo + hi) // 2]
+        i, j = lo, hi
+        while i <= j:
+            while values[i] < pivot:
+                i += 1
+            while values[j] > pivot:
+                j -= 1
+            if i <= j:
+                values[i], values[j] = values[j], values[i]
+                i += 1
+                j -= 1
+        if mid <= j:
+            hi = j
+        elif mid >= i:
+            lo = i
+        else:
+            break
+    if n % 2:
+        return values[mid]
+    below = values[0]
+    for k in range(1, mid):
+        below = max(below, values[k])
+    return (below + values[mid]) / 2.0
 
 
 def _voxel_labels(of_point: np.ndarray, labels: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

@@ -138,7 +138,8 @@ def _fit_normals(
         c0 /= k
         c1 /= k
         c2 /= k
-        cov[:] = 0.0
+        for e in range(9):
+            cov[e // 3, e % 3] = 0.0
         for j in range(k):
             q = nb[i, j]
             d0, d1, d2 = points[q, 0] - c0, points[q, 1] - c1, points[q, 2] - c2
@@ -163,35 +164,47 @@ def _least_axis(
 ) -> tuple[float, float, float]:  # pragma: no cover - numba
     """Returns the unit eigenvector of the smallest eigenvalue of the symmetric 3 x 3 matrix (cyclic Jacobi
     rotations until the off-diagonal is below 1e-15 of the trace: a few sweeps)."""
-    a = np.array([[a00, a01, a02], [a01, a11, a12], [a02, a12, a22]])
-    v = np.eye(3)
+    a = np.empty((3, 3))
+    a[0, 0], a[0, 1], a[0, 2] = a00, a01, a02
+    a[1, 0], a[1, 1], a[1, 2] = a01, a11, a12
+    a[2, 0], a[2, 1], a[2, 2] = a02, a12, a22
+    v = np.zeros((3, 3))
+    v[0, 0] = v[1, 1] = v[2, 2] = 1.0
     scale = abs(a00) + abs(a11) + abs(a22) + 1e-300
     for _ in range(32):
-        off = abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2])
-        if off <= 1e-15 * scale:
+        if abs(a[0, 1]) + abs(a[0, 2]) + abs(a[1, 2]) <= 1e-15 * scale:
             break
-        for p, q in ((0, 1), (0, 2), (1, 2)):
-            if a[p, q] == 0.0:
-                continue
-            theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
-            t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
-            c = 1.0 / np.sqrt(t * t + 1.0)
-            s = t * c
-            for r in range(3):  # a <- a J (columns p, q)
-                arp, arq = a[r, p], a[r, q]
-                a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
-            for r in range(3):  # a <- J^T a (rows p, q)
-                apr, aqr = a[p, r], a[q, r]
-                a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
-            for r in range(3):
-                vrp, vrq = v[r, p], v[r, q]
-                v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
+        for pair in range(3):
+            p = 0 if pair < 2 else 1
+            q = 1 if pair == 0 else 2
+            _jacobi_rotation(a, v, p, q)
     m = 0
     if a[1, 1] < a[m, m]:
         m = 1
     if a[2, 2] < a[m, m]:
         m = 2
     return v[0, m], v[1, m], v[2, m]
+
+
+@numba.njit(cache=True, nogil=True)
+def _jacobi_rotation(a: np.ndarray, v: np.ndarray, p: int, q: int) -> None:  # pragma: no cover - numba
+    """Zeroes a[p, q] of the symmetric 3 x 3 ``a`` by a rotation in the (p, q) plane (a <- J^T a J),
+    accumulated into the eigenvectors ``v`` (v <- v J)."""
+    if a[p, q] == 0.0:
+        return
+    theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
+    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
+    c = 1.0 / np.sqrt(t * t + 1.0)
+    s = t * c
+    for r in range(3):
+        arp, arq = a[r, p], a[r, q]
+        a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
+    for r in range(3):
+        apr, aqr = a[p, r], a[q, r]
+        a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
+    for r in range(3):
+        vrp, vrq = v[r, p], v[r, q]
+        v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
 
 
 @numba.njit(cache=True, nogil=True)
