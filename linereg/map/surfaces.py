@@ -100,7 +100,9 @@ def raster_mesh(
     size = cell * factor
     u0, u1 = lo[0] + rects[:, 0] * size, lo[0] + rects[:, 1] * size
     v0, v1 = lo[1] + rects[:, 2] * size, lo[1] + rects[:, 3] * size
-    corners = np.stack([np.c_[u0, v0], np.c_[u1, v0], np.c_[u1, v1], np.c_[u0, v1]], axis=1)  # (R, 4, 2)
+    corners = np.empty((len(rects), 4, 2))  # (R, 4, 2): (u0, v0), (u1, v0), (u1, v1), (u0, v1)
+    corners[:, [0, 3], 0], corners[:, [1, 2], 0] = u0[:, None], u1[:, None]
+    corners[:, [0, 1], 1], corners[:, [2, 3], 1] = v0[:, None], v1[:, None]
     origin, basis = plane
     vertices = origin + corners.reshape(-1, 2) @ basis
     first = 4 * np.arange(len(rects))[:, None]
