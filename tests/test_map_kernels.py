@@ -181,3 +181,26 @@ def test_the_median_by_selection_is_numpys():
                 values[: n // 3] = values[n // 2]  # ties
             rng.shuffle(values)
             assert planes._median(values.copy()) == np.median(values)
+
+
+def test_a_crease_lines_near_points_come_from_the_grid_as_from_a_plain_search():
+    rng = np.random.default_rng(10)
+    points = np.c_[rng.uniform(0, 2, (4000, 2)), 0.01 * rng.normal(size=4000)]  # a floor
+    members = [np.arange(2000), np.arange(2000, 4000)]
+    grid = creases._region_grids(points, members, np.array([0.06, 0.09]))
+    origin, direction = np.array([0.3, 0.2, 0.0]), np.array([0.6, 0.8, 0.0])
+    r, enter = 0.09, 0.1
+    count = int(np.ceil((1.8 + r - enter) / r))
+    for region in (0, 1):
+        t_out, perp_out = np.empty(2000), np.empty((2000, 3))
+        n = creases._near_side(points, grid, region, origin, direction, enter, r, count, t_out, perp_out)
+        p = points[members[region]] - origin
+        t = p @ direction
+        perp = p - np.outer(t, direction)
+        nearest = enter + np.clip(np.floor((t - enter) / r + 0.5), 0, count - 1) * r
+        near = (np.linalg.norm(perp, axis=1) <= r) & (
+            np.linalg.norm(points[members[region]] - (origin + np.outer(nearest, direction)), axis=1)
+            <= 1.5 * r
+        )
+        assert n == near.sum() > 50
+        assert np.allclose(np.sort(t_out[:n]), np.sort(t[near]), atol=1e-12)

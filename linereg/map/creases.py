@@ -6,6 +6,8 @@ over the stretch where both regions have points near it, reaching it from one si
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numba
 import numpy as np
 
@@ -29,9 +31,12 @@ def crease_segments(
     sines = np.linalg.norm(directions, axis=1)
     keep = sines >= np.sin(np.radians(config.crease_min_angle_deg))
     pairs, directions = pairs[keep], directions[keep] / sines[keep, None]
-    box_lo, box_hi = np.zeros((len(planes.counts), 3)), np.zeros((len(planes.counts), 3))
-    for r in np.unique(pairs):
-        box_lo[r], box_hi[r] = points[members[r]].min(axis=0), points[members[r]].max(axis=0)
+    # the regions of the pairs in grids (the others left empty), which also give their boxes
+    used = np.zeros(len(members), dtype=bool)
+    used[pairs.ravel()] = True
+    empty = np.zeros(0, np.int64)
+    grid = _region_grids(points, [m if u else empty for m, u in zip(members, used, strict=True)], 3.0 * cells)
+    box_lo, box_hi = grid.low, grid.high
     share = config.crease_one_sided
     a, b = pairs[:, 0], pairs[:, 1]
     cell = np.maximum(cells[a], cells[b])
@@ -43,16 +48,53 @@ def crease_segments(
     hi = np.minimum(box_hi[a], box_hi[b]) + 3 * cell[:, None]
     enter, leave, inside = _overlap(lo, hi, origin, directions)
     keep = np.flatnonzero(inside)
-    # every region's points one after another (members[r] is that region's slice)
-    sizes = np.array([len(members[r]) for r in range(len(members))], dtype=np.int64)
-    first = np.r_[0, np.cumsum(sizes)]
-    flat = np.concatenate([np.zeros(0, np.int64), *members]).astype(np.int64)
     gap_half = np.maximum((config.collinear_gap_m / cell[keep] / 2).astype(np.int64), 1)
     found = _crease_runs(
-        points, flat, first, a[keep], b[keep], origin[keep], directions[keep], enter[keep], leave[keep],
+        points, grid, a[keep], b[keep], origin[keep], directions[keep], enter[keep], leave[keep],
         cell[keep], gap_half, config.min_length_m, share,
     )  # fmt: skip
     return found.reshape(-1, 6)
+
+
+class _Grids(NamedTuple):
+    """Every region's points in cubic cells of its own ``size`` (R,) from its ``low`` corner (R, 3) (its
+    points' minimum; ``high``: their maximum), ``dims`` (R, 3) cells along each axis: region r's points are
+    flat[first[r]:first[r + 1]] (indices into the cloud), sorted by their cell's ``keys``
+    ((i dims[1] + j) dims[2] + k)."""
+
+    flat: np.ndarray
+    keys: np.ndarray
+    first: np.ndarray
+    low: np.ndarray
+    high: np.ndarray
+    size: np.ndarray
+    dims: np.ndarray
+
+
+def _region_grids(points: np.ndarray, members: list[np.ndarray], size: np.ndarray) -> _Grids:
+    """Returns the _Grids of the regions' ``members`` (indices into the (P, 3) ``points``) with cells
+    ``size`` (R,) wide: a line's near points are then looked up round its samples, not among all the
+    region's points (a ground region meets hundreds of walls in a large scan)."""
+    sizes = np.array([len(m) for m in members], dtype=np.int64)
+    first = np.r_[0, np.cumsum(sizes)].astype(np.int64)
+    flat = np.concatenate([np.zeros(0, np.int64), *members]).astype(np.int64)
+    region = np.repeat(np.arange(len(members)), sizes)
+    low, high = np.zeros((len(members), 3)), np.zeros((len(members), 3))
+    dims = np.ones((len(members), 3), dtype=np.int64)
+    if len(flat) == 0:
+        return _Grids(flat, np.zeros(0, np.int64), first, low, high, size.astype(np.float64), dims)
+    has = sizes > 0
+    p = points[flat]
+    low[has] = np.minimum.reduceat(p, first[:-1][has], axis=0)
+    high[has] = np.maximum.reduceat(p, first[:-1][has], axis=0)
+    ijk = np.floor((p - low[region]) / size[region, None]).astype(np.int64)
+    dims[has] = np.maximum.reduceat(ijk, first[:-1][has], axis=0) + 1
+    key = (ijk[:, 0] * dims[region, 1] + ijk[:, 1]) * dims[region, 2] + ijk[:, 2]
+    # one sort for all regions: each region's cells numbered after the previous regions' (the order of
+    # points within a cell does not matter)
+    cells = dims.prod(axis=1)
+    order = np.argsort(key + (np.cumsum(cells) - cells)[region])
+    return _Grids(flat[order], key[order], first, low, high, size.astype(np.float64), dims)
 
 
 def _overlap(
@@ -72,8 +114,7 @@ def _overlap(
 @numba.njit(cache=True, nogil=True)
 def _crease_runs(
     points: np.ndarray,
-    flat: np.ndarray,
-    first: np.ndarray,
+    grid: _Grids,
     a: np.ndarray,
     b: np.ndarray,
     origin: np.ndarray,
@@ -86,7 +127,7 @@ def _crease_runs(
     share: float,
 ) -> np.ndarray:  # pragma: no cover - numba
     """Returns (K, 6) crease segments: per line k (origin[k] + t direction[k], regions a[k] and b[k], whose
-    points are flat[first[r]:first[r + 1]] of ``points``), the runs of raster cells ``cell[k]`` long where
+    points are in ``grid``), the runs of raster cells ``cell[k]`` long where
     both regions have points within 3 cells of the line, gaps of up to 2 gap_half[k] cells closed, at
     least ``min_length`` long, kept where ``share`` of either region's points near the run lie on one side.
 
@@ -94,16 +135,17 @@ def _crease_runs(
     samples spaced 3 cells from ``enter`` to past ``leave`` (the span inside both regions' boxes)."""
     out = np.empty((16, 6))
     found = 0
+    largest = 0
+    for g in range(len(grid.first) - 1):
+        largest = max(largest, grid.first[g + 1] - grid.first[g])
+    # buffers for the near points of a line's two regions, reused line after line
+    ta, perp_a = np.empty(largest), np.empty((largest, 3))
+    tb, perp_b = np.empty(largest), np.empty((largest, 3))
     for k in range(len(a)):
         r = 3.0 * cell[k]
         count = int(np.ceil((leave[k] + r - enter[k]) / r))
-        size_a, size_b = first[a[k] + 1] - first[a[k]], first[b[k] + 1] - first[b[k]]
-        ta, perp_a = np.empty(size_a), np.empty((size_a, 3))
-        tb, perp_b = np.empty(size_b), np.empty((size_b, 3))
-        na = _near_side(points, flat, first[a[k]], first[a[k] + 1], origin[k], direction[k], enter[k], r,
-                        count, ta, perp_a)  # fmt: skip
-        nb = _near_side(points, flat, first[b[k]], first[b[k] + 1], origin[k], direction[k], enter[k], r,
-                        count, tb, perp_b)  # fmt: skip
+        na = _near_side(points, grid, a[k], origin[k], direction[k], enter[k], r, count, ta, perp_a)
+        nb = _near_side(points, grid, b[k], origin[k], direction[k], enter[k], r, count, tb, perp_b)
         if na == 0 or nb == 0:
             continue
         lo_a = hi_a = ta[0]
@@ -156,9 +198,8 @@ def _crease_runs(
 @numba.njit(cache=True, nogil=True)
 def _near_side(
     points: np.ndarray,
-    flat: np.ndarray,
-    lo: int,
-    hi: int,
+    grid: _Grids,
+    region: int,
     origin: np.ndarray,
     direction: np.ndarray,
     enter: float,
@@ -167,27 +208,48 @@ def _near_side(
     t_out: np.ndarray,
     perp_out: np.ndarray,
 ) -> int:  # pragma: no cover - numba
-    """Writes the line parameter and offset from the line (origin + t direction) of each point
-    points[flat[lo:hi]] within ``r`` of it and within 1.5 r of its nearest of the ``count`` samples
-    enter + i r, in their order; returns how many."""
+    """Writes the line parameter and offset from the line (origin + t direction) of each point of
+    ``region`` within ``r`` of it and within 1.5 r of its nearest of the ``count`` samples enter + i r
+    (the nearest along the line is the nearest in space: the offset across is the same); returns how
+    many. Each sample looks at the region's cells within 1.5 r of it and keeps the points it is nearest."""
+    lo, hi = grid.first[region], grid.first[region + 1]
+    size = grid.size[region]
+    reach = int(np.ceil(1.5 * r / size))
+    d0, d1, d2 = grid.dims[region, 0], grid.dims[region, 1], grid.dims[region, 2]
     n = 0
-    for m in range(lo, hi):
-        q = flat[m]
-        p0, p1, p2 = points[q, 0] - origin[0], points[q, 1] - origin[1], points[q, 2] - origin[2]
-        t = p0 * direction[0] + p1 * direction[1] + p2 * direction[2]
-        e0, e1, e2 = p0 - t * direction[0], p1 - t * direction[1], p2 - t * direction[2]
-        if e0 * e0 + e1 * e1 + e2 * e2 > r * r:
-            continue
-        # the nearest sample along the line is the nearest in space: the offset across is the same
-        s = enter + min(max(np.floor((t - enter) / r + 0.5), 0.0), count - 1.0) * r
-        f0 = points[q, 0] - (origin[0] + s * direction[0])
-        f1 = points[q, 1] - (origin[1] + s * direction[1])
-        f2 = points[q, 2] - (origin[2] + s * direction[2])
-        if f0 * f0 + f1 * f1 + f2 * f2 > 2.25 * r * r:
-            continue
-        t_out[n] = t
-        perp_out[n, 0], perp_out[n, 1], perp_out[n, 2] = e0, e1, e2
-        n += 1
+    for s in range(count):
+        at = enter + s * r
+        x0, x1, x2 = (
+            origin[0] + at * direction[0],
+            origin[1] + at * direction[1],
+            origin[2] + at * direction[2],
+        )
+        c0 = int(np.floor((x0 - grid.low[region, 0]) / size))
+        c1 = int(np.floor((x1 - grid.low[region, 1]) / size))
+        c2 = int(np.floor((x2 - grid.low[region, 2]) / size))
+        for i in range(max(c0 - reach, 0), min(c0 + reach + 1, d0)):
+            for j in range(max(c1 - reach, 0), min(c1 + reach + 1, d1)):
+                row = (i * d1 + j) * d2
+                k_lo, k_hi = max(c2 - reach, 0), min(c2 + reach + 1, d2)
+                if k_lo >= k_hi:
+                    continue
+                m = lo + np.searchsorted(grid.keys[lo:hi], row + k_lo)
+                while m < hi and grid.keys[m] < row + k_hi:
+                    q = grid.flat[m]
+                    m += 1
+                    p0, p1, p2 = points[q, 0] - origin[0], points[q, 1] - origin[1], points[q, 2] - origin[2]
+                    t = p0 * direction[0] + p1 * direction[1] + p2 * direction[2]
+                    if min(max(np.floor((t - enter) / r + 0.5), 0.0), count - 1.0) != s:
+                        continue  # another sample's point
+                    e0, e1, e2 = p0 - t * direction[0], p1 - t * direction[1], p2 - t * direction[2]
+                    if e0 * e0 + e1 * e1 + e2 * e2 > r * r:
+                        continue
+                    f0, f1, f2 = points[q, 0] - x0, points[q, 1] - x1, points[q, 2] - x2
+                    if f0 * f0 + f1 * f1 + f2 * f2 > 2.25 * r * r:
+                        continue
+                    t_out[n] = t
+                    perp_out[n, 0], perp_out[n, 1], perp_out[n, 2] = e0, e1, e2
+                    n += 1
     return n
 
 
