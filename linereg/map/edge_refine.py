@@ -122,6 +122,9 @@ def _beside_pairs(besides: list[tuple[np.ndarray, int, int]], geometry: tuple[np
     return _in_bands(beside, first, owner, a, d, out, length, band, 0.0)
 
 
+BRUTE_LINES = 16  # a region with at most this many lines tests all its points per line, no grid
+
+
 @numba.njit(cache=True, nogil=True)
 def _in_bands(
     points: np.ndarray,
@@ -140,14 +143,16 @@ def _in_bands(
     margin band[k] <= t <= length[k] - margin band[k], |o| <= band[k] and within hypot(band, band / 2) of
     the line's sample (every band from a[k]) nearest it along the line; line after line.
 
-    A region's points are sorted into square cells a band wide; each sample looks at the cells within two
-    of its own, and keeps the points whose nearest sample it is: the work follows the lines' lengths, not
-    the region's size (a facade holds 10^5 points and hundreds of lines).
+    A region of many lines (a facade holds 10^5 points and hundreds of window lines) has its points sorted
+    into square cells a band wide: each sample of a line looks at the cells within two of its own and keeps
+    the points whose nearest sample it is, so the work follows the lines' lengths. A region of at most
+    BRUTE_LINES lines (most of a room's thousand) tests all its points per line.
     """
     rows = np.empty((0, 4))
     for fill in range(2):  # count, then fill (a loop over a tuple costs a second to compile)
         n = 0
         region, h = -1, -1.0
+        brute = True
         lo0 = lo1 = 0.0
         nx = ny = 1
         order = np.zeros(0, dtype=np.int64)
@@ -157,36 +162,36 @@ def _in_bands(
             if r < 0 or first[r + 1] == first[r]:
                 continue
             if r != region or band[k] != h:
-                # the region's grid: cells h wide from its points' lower corner, two empty cells round
                 region, h = r, band[k]
-                lo0, lo1 = np.inf, np.inf
-                hi0, hi1 = -np.inf, -np.inf
-                for p in range(first[r], first[r + 1]):
-                    lo0, lo1 = min(lo0, points[p, 0]), min(lo1, points[p, 1])
-                    hi0, hi1 = max(hi0, points[p, 0]), max(hi1, points[p, 1])
-                nx, ny = int((hi0 - lo0) / h) + 1, int((hi1 - lo1) / h) + 1
-                key = np.empty(first[r + 1] - first[r], dtype=np.int64)
-                for p in range(first[r], first[r + 1]):
-                    key[p - first[r]] = int((points[p, 0] - lo0) / h) * ny + int((points[p, 1] - lo1) / h)
-                # counting sort: the points of a cell in their order
-                start = np.zeros(nx * ny + 1, dtype=np.int64)
-                for c in key:
-                    start[c + 1] += 1
-                for c in range(nx * ny):
-                    start[c + 1] += start[c]
-                placed = np.empty(nx * ny, dtype=np.int64)
-                for c in range(nx * ny):
-                    placed[c] = start[c]
-                order = np.empty(len(key), dtype=np.int64)
-                for i in range(len(key)):
-                    order[placed[key[i]]] = first[r] + i
-                    placed[key[i]] += 1
+                lines = 0
+                while k + lines < len(owner) and owner[k + lines] == r and band[k + lines] == h:
+                    lines += 1
+                brute = lines <= BRUTE_LINES
+                if not brute:
+                    lo0, lo1, nx, ny, order, start = _band_grid(points, first[r], first[r + 1], h)
             count = int(np.ceil((length[k] + band[k]) / band[k]))
             lo_t, hi_t = margin * band[k], length[k] - margin * band[k]
+            if brute:
+                for p in range(first[r], first[r + 1]):
+                    # written out here and below: a helper returning a tuple made the loop 10x slower
+                    r0, r1 = points[p, 0] - a[k, 0], points[p, 1] - a[k, 1]
+                    t = r0 * d[k, 0] + r1 * d[k, 1]
+                    o = r0 * across[k, 0] + r1 * across[k, 1]
+                    ok = t >= lo_t and t <= hi_t and abs(o) <= band[k] and np.isfinite(o)
+                    if ok:
+                        own = min(max(np.floor(t / band[k] + 0.5), 0.0), count - 1.0)
+                        e0 = points[p, 0] - (a[k, 0] + own * band[k] * d[k, 0])
+                        e1 = points[p, 1] - (a[k, 1] + own * band[k] * d[k, 1])
+                        ok = e0 * e0 + e1 * e1 <= 1.25 * band[k] * band[k]
+                    if ok:
+                        if fill:
+                            rows[n, 0], rows[n, 1], rows[n, 2] = k, t, o
+                            rows[n, 3] = points[p, 2] if points.shape[1] > 2 else 0.0
+                        n += 1
+                continue
             for s in range(count):
-                sx = a[k, 0] + s * band[k] * d[k, 0]
-                sy = a[k, 1] + s * band[k] * d[k, 1]
-                ci, cj = int(np.floor((sx - lo0) / h)), int(np.floor((sy - lo1) / h))
+                ci = int(np.floor((a[k, 0] + s * band[k] * d[k, 0] - lo0) / h))
+                cj = int(np.floor((a[k, 1] + s * band[k] * d[k, 1] - lo1) / h))
                 for i in range(max(ci - 2, 0), min(ci + 3, nx)):
                     for j in range(max(cj - 2, 0), min(cj + 3, ny)):
                         c = i * ny + j
@@ -194,14 +199,15 @@ def _in_bands(
                             p = order[m]
                             r0, r1 = points[p, 0] - a[k, 0], points[p, 1] - a[k, 1]
                             t = r0 * d[k, 0] + r1 * d[k, 1]
-                            own = min(max(np.floor(t / band[k] + 0.5), 0.0), count - 1.0)
-                            if own != s:
-                                continue
+                            if min(max(np.floor(t / band[k] + 0.5), 0.0), count - 1.0) != s:
+                                continue  # another sample's point
                             o = r0 * across[k, 0] + r1 * across[k, 1]
-                            if t >= lo_t and t <= hi_t and abs(o) <= band[k] and np.isfinite(o):
-                                e0, e1 = points[p, 0] - sx, points[p, 1] - sy
-                                if e0 * e0 + e1 * e1 > 1.25 * band[k] * band[k]:
-                                    continue
+                            ok = t >= lo_t and t <= hi_t and abs(o) <= band[k] and np.isfinite(o)
+                            if ok:
+                                e0 = points[p, 0] - (a[k, 0] + s * band[k] * d[k, 0])
+                                e1 = points[p, 1] - (a[k, 1] + s * band[k] * d[k, 1])
+                                ok = e0 * e0 + e1 * e1 <= 1.25 * band[k] * band[k]
+                            if ok:
                                 if fill:
                                     rows[n, 0], rows[n, 1], rows[n, 2] = k, t, o
                                     rows[n, 3] = points[p, 2] if points.shape[1] > 2 else 0.0
@@ -209,6 +215,37 @@ def _in_bands(
         if not fill:
             rows = np.empty((n, 4))
     return rows
+
+
+@numba.njit(cache=True, nogil=True)
+def _band_grid(
+    points: np.ndarray, lo: int, hi: int, h: float
+) -> tuple[float, float, int, int, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns the grid of points[lo:hi] in square cells ``h`` wide from their lower corner: its corner,
+    (nx, ny) cells, the points' indices cell after cell (in their order within a cell: a counting sort)
+    and each cell's start among them (nx ny + 1)."""
+    lo0, lo1 = np.inf, np.inf
+    hi0, hi1 = -np.inf, -np.inf
+    for p in range(lo, hi):
+        lo0, lo1 = min(lo0, points[p, 0]), min(lo1, points[p, 1])
+        hi0, hi1 = max(hi0, points[p, 0]), max(hi1, points[p, 1])
+    nx, ny = int((hi0 - lo0) / h) + 1, int((hi1 - lo1) / h) + 1
+    key = np.empty(hi - lo, dtype=np.int64)
+    for p in range(lo, hi):
+        key[p - lo] = int((points[p, 0] - lo0) / h) * ny + int((points[p, 1] - lo1) / h)
+    start = np.zeros(nx * ny + 1, dtype=np.int64)
+    for i in range(len(key)):
+        start[key[i] + 1] += 1
+    for c in range(nx * ny):
+        start[c + 1] += start[c]
+    placed = np.empty(nx * ny, dtype=np.int64)
+    for c in range(nx * ny):
+        placed[c] = start[c]
+    order = np.empty(len(key), dtype=np.int64)
+    for i in range(len(key)):
+        order[placed[key[i]]] = lo + i
+        placed[key[i]] += 1
+    return lo0, lo1, nx, ny, order, start
 
 
 def _group_min(values: np.ndarray, group: np.ndarray, num: int) -> np.ndarray:
