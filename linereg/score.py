@@ -420,14 +420,16 @@ def _covering_pairs(
 def grow(a: np.ndarray, cap: int) -> np.ndarray:
     """Returns a 1-D array of ``cap`` slots of ``a``'s dtype starting with ``a`` (compiled kernels' buffers)."""
     out = np.empty(cap, a.dtype)
-    out[: len(a)] = a
+    for i in range(len(a)):  # a loop: a slice copy costs seconds of compile in every caller's types
+        out[i] = a[i]
     return out
 
 
 @numba.njit(cache=True, nogil=True)
 def _grow_2(a: np.ndarray, cap: int) -> np.ndarray:
     out = np.empty((cap, 2))
-    out[: len(a)] = a
+    for i in range(len(a)):
+        out[i, 0], out[i, 1] = a[i, 0], a[i, 1]
     return out
 
 
