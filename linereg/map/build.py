@@ -110,17 +110,16 @@ def extract_map(
             sensed = run(
                 _sensor_edges, points, intensity if with_intensity else None, offset, profile, sensor, config
             )
-        edges = None
+        edges, at_points = None, None
         if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
             from .point_edges import find_edge_points
 
             # the edge points need no planes: found while this thread grows them; the lines along the
             # planes' directions after (the same one-thread pool: in that order)
             at_points = run(find_edge_points, local, config.point)
-            planes = segment_planes(local, lines_config, progress)
+        planes = segment_planes(local, lines_config, progress)
+        if at_points is not None:
             edges = run(_point_edges, local, planes, profile, lines_config, config, at_points)
-        else:
-            planes = segment_planes(local, lines_config, progress)
         if progress:
             progress("lines")
         mesh_cell = config.mesh_cell_m if config.surfaces else np.inf

@@ -173,7 +173,8 @@ def _in_bands(
             lo_t, hi_t = margin * band[k], length[k] - margin * band[k]
             if brute:
                 for p in range(first[r], first[r + 1]):
-                    # written out here and below: a helper returning a tuple made the loop 10x slower
+                    # written out here and below: a helper per point (returning a tuple, or an int
+                    # after writing the row itself, inlined or not) made these loops 10-15x slower
                     r0, r1 = points[p, 0] - a[k, 0], points[p, 1] - a[k, 1]
                     t = r0 * d[k, 0] + r1 * d[k, 1]
                     o = r0 * across[k, 0] + r1 * across[k, 1]
