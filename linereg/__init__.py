@@ -28,6 +28,7 @@ __all__ = [
     "localize_segments",
     "localize_sequence",
     "register",
+    "warm_up",
 ]
 __version__ = "0.1.0"
 
@@ -43,6 +44,7 @@ _LAZY = {
     "Tracker": "linereg.tracking",
     "TrackingConfig": "linereg.tracking",
     "colorize": "linereg.colorization",
+    "warm_up": "linereg.warm",
 }
 
 

@@ -34,6 +34,7 @@ from .score import (
     _project_clipped,
     grow,
     score_pose,
+    stable_argsort,
 )
 from .threads import map_threads, run_parallel, thread_count
 
@@ -850,7 +851,7 @@ def _solve_round(
     )
     if len(i) < 4:
         return None
-    order = np.argsort(-(cover[:, 1] - cover[:, 0]), kind="mergesort")  # stable, as greedy_pairs sorts
+    order = stable_argsort(-(cover[:, 1] - cover[:, 0]))  # as greedy_pairs sorts
     pairs = np.empty((len(i), 2), np.int64)
     for k in range(len(order)):
         pairs[k, 0], pairs[k, 1] = i[order[k]], index[j[order[k]]]
@@ -908,7 +909,7 @@ def _gauss_newton(
     (its ``evaluate``, with the normal equations summed in place). Returns the (4, 4) world_from_cam, or
     None for a singular system."""
     T = world_from_cam.copy()
-    J = np.empty(6)
+    J, step = np.empty(6), np.empty(6)
     for _ in range(iterations):
         H, rhs = np.zeros((6, 6)), np.zeros(6)
         for i in range(len(points)):
@@ -928,17 +929,95 @@ def _gauss_newton(
                 rhs[r] -= w2 * J[r] * e
                 for q in range(6):
                     H[r, q] += w2 * J[r] * J[q]
-        if np.linalg.cond(H) > 1e12:
+        if not _solve_symmetric(H, rhs, 1e12, step):
             return None
-        step = np.linalg.solve(H, rhs)
         delta = np.eye(4)
         angle = np.sqrt(step[0] ** 2 + step[1] ** 2 + step[2] ** 2)
-        if angle >= 1e-12:  # Rodrigues (geometry.rotation_from_vector)
+        if angle >= 1e-12:  # Rodrigues (geometry.rotation_from_vector): I + sin K + (1 - cos) K K
             k0, k1, k2 = step[0] / angle, step[1] / angle, step[2] / angle
-            K = np.array([[0.0, -k2, k1], [k2, 0.0, -k0], [-k1, k0, 0.0]])
-            delta[:3, :3] = np.eye(3) + np.sin(angle) * K + (1.0 - np.cos(angle)) * (K @ K)
-        delta[:3, 3] = step[3:]  # gtsam's Pose3 retract to first order (translation in the body frame)
-        T = T @ delta
-        if np.linalg.norm(step) < 1e-7:
+            s, v = np.sin(angle), 1.0 - np.cos(angle)  # K K = k k^T - I for the unit axis k
+            delta[0, 0] = 1.0 - v * (k1 * k1 + k2 * k2)
+            delta[1, 1] = 1.0 - v * (k0 * k0 + k2 * k2)
+            delta[2, 2] = 1.0 - v * (k0 * k0 + k1 * k1)
+            delta[0, 1], delta[1, 0] = -s * k2 + v * k0 * k1, s * k2 + v * k0 * k1
+            delta[0, 2], delta[2, 0] = s * k1 + v * k0 * k2, -s * k1 + v * k0 * k2
+            delta[1, 2], delta[2, 1] = -s * k0 + v * k1 * k2, s * k0 + v * k1 * k2
+        # gtsam's Pose3 retract to first order (translation in the body frame); element by element, as a
+        # slice assignment's overloads cost seconds of compile
+        delta[0, 3], delta[1, 3], delta[2, 3] = step[3], step[4], step[5]
+        # T @ delta written out (numba's matrix product and linalg cost seconds of compile in every process)
+        moved = np.zeros((4, 4))
+        for r in range(4):
+            for q in range(4):
+                for e in range(4):
+                    moved[r, q] += T[r, e] * delta[e, q]
+        T = moved
+        if np.sqrt(np.sum(step**2)) < 1e-7:
             break
     return T
+
+
+@numba.njit(cache=True, nogil=True)
+def _solve_symmetric(
+    H: np.ndarray, rhs: np.ndarray, max_cond: float, out: np.ndarray
+) -> bool:  # pragma: no cover - numba
+    """Solves H x = rhs for a symmetric (n, n) H into ``out`` (n,) from its eigen-decomposition (cyclic
+    Jacobi rotations); returns False, leaving ``out`` undefined, where H is not finite or its condition
+    number (largest over smallest absolute eigenvalue, as ``np.linalg.cond`` of a symmetric matrix) exceeds
+    ``max_cond``. Written out instead of ``np.linalg``: numba compiles its LAPACK bindings and their error
+    messages for seconds in every fresh process."""
+    n = len(rhs)
+    A, V = np.empty((n, n)), np.zeros((n, n))
+    for r in range(n):
+        V[r, r] = 1.0
+        for q in range(n):
+            A[r, q] = H[r, q]
+    for r in range(n):
+        for q in range(n):
+            if not np.isfinite(A[r, q]):
+                return False
+    for _ in range(64):
+        off, scale = 0.0, 0.0
+        for r in range(n):
+            scale += A[r, r] ** 2
+            for q in range(r + 1, n):
+                off += A[r, q] ** 2
+        if off <= 1e-32 * scale or off == 0.0:
+            break
+        for p in range(n - 1):
+            for q in range(p + 1, n):
+                if A[p, q] == 0.0:
+                    continue
+                theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
+                if abs(theta) > 1e150:
+                    t = 0.5 / theta
+                else:
+                    t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
+                    if theta < 0.0:
+                        t = -t
+                c = 1.0 / np.sqrt(t * t + 1.0)
+                s = t * c
+                for k in range(n):  # A J, then J^T (A J); V J
+                    akp, akq = A[k, p], A[k, q]
+                    A[k, p], A[k, q] = c * akp - s * akq, s * akp + c * akq
+                for k in range(n):
+                    apk, aqk = A[p, k], A[q, k]
+                    A[p, k], A[q, k] = c * apk - s * aqk, s * apk + c * aqk
+                for k in range(n):
+                    vkp, vkq = V[k, p], V[k, q]
+                    V[k, p], V[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+    smallest, largest = np.inf, 0.0
+    for r in range(n):
+        smallest, largest = min(smallest, abs(A[r, r])), max(largest, abs(A[r, r]))
+    if smallest == 0.0 or largest > max_cond * smallest:
+        return False
+    for r in range(n):
+        out[r] = 0.0
+    for e in range(n):  # x = V diag(1 / lambda) V^T rhs
+        along = 0.0
+        for k in range(n):
+            along += V[k, e] * rhs[k]
+        along /= A[e, e]
+        for r in range(n):
+            out[r] += V[r, e] * along
+    return True

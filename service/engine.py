@@ -3,8 +3,11 @@
 from __future__ import annotations
 
 import importlib
+import logging
 from collections.abc import Callable
 from dataclasses import dataclass, field
+
+log = logging.getLogger(__name__)
 
 
 @dataclass
@@ -37,7 +40,8 @@ def load_engine(spec: str, args: tuple) -> Engine:
 
 def load_map_engine(map_path: str, map_name: str | None = None, config_path: str | None = None) -> Engine:
     """Returns the Engine of the real library over the LineMap file ``map_path`` (config: the defaults, or
-    the JSON overrides at ``config_path``)."""
+    the JSON overrides at ``config_path``), its compiled kernels ready (``linereg.warm_up``: the worker
+    announces itself after it, so that no query waits for numba to compile them on a fresh install)."""
     import linereg
 
     line_map = linereg.LineMap.load(map_path)
@@ -45,6 +49,8 @@ def load_map_engine(map_path: str, map_name: str | None = None, config_path: str
     name = map_name or str(getattr(line_map, "name", "") or info.get("name") or "map")
     engine = _engine(line_map, name, info)
     engine.config = _config(config_path)
+    seconds = linereg.warm_up()
+    log.info("kernels ready", extra={"fields": {"seconds": round(seconds, 2)}})
     return engine
 
 

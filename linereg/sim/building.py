@@ -74,6 +74,15 @@ class Building:
         n = np.cross(self.faces[:, 1] - self.faces[:, 0], self.faces[:, 2] - self.faces[:, 0])
         return n / np.linalg.norm(n, axis=1, keepdims=True)
 
+    def mesh(self) -> tuple[np.ndarray, np.ndarray]:
+        """Returns ((4F, 3) vertices, (2F, 3) int64 triangles) of the faces: each rectangle as two triangles
+        sharing its diagonal, in consecutive rows (as ``LineMap`` surfaces pair them back into rectangles)."""
+        corner = 4 * np.arange(len(self.faces))
+        triangles = np.stack(
+            [np.c_[corner, corner + 1, corner + 2], np.c_[corner, corner + 2, corner + 3]], axis=1
+        )
+        return self.faces.reshape(-1, 3), triangles.reshape(-1, 3)
+
 
 class _Frame(NamedTuple):
     """A plane with in-plane axes u, v and normal n = u x v: local (s, t, d) -> origin + s u + t v + d n."""
