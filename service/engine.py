@@ -49,8 +49,12 @@ def load_map_engine(map_path: str, map_name: str | None = None, config_path: str
     name = map_name or str(getattr(line_map, "name", "") or info.get("name") or "map")
     engine = _engine(line_map, name, info)
     engine.config = _config(config_path)
-    seconds = linereg.warm_up()
-    log.info("kernels ready", extra={"fields": {"seconds": round(seconds, 2)}})
+    try:
+        seconds = linereg.warm_up()
+    except Exception as e:  # an optimisation: the first query compiles what it did not
+        log.warning("warm-up failed", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
+    else:
+        log.info("kernels ready", extra={"fields": {"seconds": round(seconds, 2)}})
     return engine
 
 

@@ -62,3 +62,20 @@ def test_the_symmetric_solve_and_its_condition_test_are_numpys():
     not_finite = np.eye(6)
     not_finite[2, 2] = np.nan
     assert not _solve_symmetric(not_finite, np.ones(6), 1e12, out)
+
+
+def test_a_failing_warm_up_does_not_stop_a_service_worker_loading_its_map(tmp_path, monkeypatch, caplog):
+    import linereg.warm
+    from service.engine import load_map_engine
+
+    def broken() -> float:
+        raise RuntimeError("no compiler")
+
+    rng = np.random.default_rng(5)
+    path = tmp_path / "small.linemap"
+    linereg.LineMap.from_segments(rng.uniform(-5, 5, (40, 6)), name="small").save(path)
+    monkeypatch.setattr(linereg.warm, "warm_up", broken)
+    with caplog.at_level("WARNING", logger="service.engine"):
+        engine = load_map_engine(str(path))
+    assert engine.map_name == "small" and len(engine.line_map.segments) == 40
+    assert [r.getMessage() for r in caplog.records] == ["warm-up failed"]
