@@ -30,6 +30,7 @@ class Engine:
     config: object = None
     map_id: str = ""  # unique id of the map's content (LineMap.info()["map_id"])
     tracker: Callable | None = None
+    warm_up_s: float | None = None  # how long the compiled kernels took to be ready (None: no warm-up)
 
 
 def load_engine(spec: str, args: tuple) -> Engine:
@@ -50,11 +51,9 @@ def load_map_engine(map_path: str, map_name: str | None = None, config_path: str
     engine = _engine(line_map, name, info)
     engine.config = _config(config_path)
     try:
-        seconds = linereg.warm_up()
+        engine.warm_up_s = linereg.warm_up()
     except Exception as e:  # an optimisation: the first query compiles what it did not
         log.warning("warm-up failed", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
-    else:
-        log.info("kernels ready", extra={"fields": {"seconds": round(seconds, 2)}})
     return engine
 
 

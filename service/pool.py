@@ -116,6 +116,11 @@ class WorkerPool:
 
     def start(self, timeout_s: float = 300.0) -> dict:
         """Starts every worker, waits until each has loaded the map; returns the first one's ready doc."""
+        log.info(
+            "starting workers",
+            extra={"fields": {"workers": self.num_workers, "note": "each loads the map and makes its "
+                              "compiled kernels ready (the first time after an install: compiled, ~30 s)"}},
+        )  # fmt: skip
         started = [self._spawn(i) for i in range(self.num_workers)]
         for i, (proc, conn) in enumerate(started):
             self._procs[i] = (proc, conn, self._await_ready(proc, conn, timeout_s))
@@ -244,7 +249,10 @@ class WorkerPool:
         if doc["type"] != "ready":
             raise RuntimeError(f"worker failed to load the map: {doc.get('error')}\n{doc.get('trace', '')}")
         self.ready_info = self.ready_info or doc
-        log.info("worker ready", extra={"fields": {"pid": proc.pid, "map": doc.get("map_name")}})
+        fields = {"pid": proc.pid, "map": doc.get("map_name")}
+        if doc.get("warm_up_s") is not None:  # compiled kernels made ready (a fresh install: compiled)
+            fields["warm_up_s"] = round(float(doc["warm_up_s"]), 2)
+        log.info("worker ready", extra={"fields": fields})
         return doc
 
     def _replace(self, index: int, reason: str) -> None:

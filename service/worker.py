@@ -45,7 +45,7 @@ def worker_main(conn, loader: str, loader_args: tuple, limits: Limits) -> None:
         )
         return
     info = {"map_name": engine.map_name, "map_version": engine.map_version, "info": engine.info,
-            "tracking": engine.tracker is not None}  # fmt: skip
+            "tracking": engine.tracker is not None, "warm_up_s": engine.warm_up_s}  # fmt: skip
     conn.send_bytes(protocols.pack("ready", info))
     trackers = Trackers(engine, limits)
     while True:
