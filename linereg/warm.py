@@ -2,9 +2,10 @@
 
 linereg's inner loops are compiled by numba on first use and cached on disk (next to the modules, or in
 ``NUMBA_CACHE_DIR``). A fresh install compiles them during its first localization, ~20-30 s on 2 cores;
-a process whose cache is filled loads them in about a second. ``warm_up`` runs one small localization so
-that this happens before a caller waits for an answer: a service worker warms up before it announces
-itself ready, and ``linereg demo`` warms up in a process of its own while it scans and maps its scene.
+a process whose cache is filled loads them in about a second. ``warm_up`` runs one small localization
+and two tracked frames so that this happens before a caller waits for an answer: a service worker warms
+up before it announces itself ready, and ``linereg demo`` warms up in a process of its own while it scans
+and maps its scene.
 """
 
 from __future__ import annotations
@@ -16,12 +17,14 @@ import numpy as np
 
 def warm_up() -> float:
     """Localizes a small generated building once (its edges as the map, its faces as the map's surfaces,
-    the edges it shows projected at a street-level pose), so that every kernel a localization calls is
-    compiled or loaded from the cache. Returns the seconds it took."""
+    the edges it shows projected at a street-level pose) and tracks it for two frames, so that every
+    kernel a localization or a tracking session calls is compiled or loaded from the cache. Returns the
+    seconds it took."""
     from .localization import localize_segments
     from .map.linemap import LineMap
     from .sim.building import BuildingConfig, make_building
     from .sim.views import camera_poses, project_building, street_camera
+    from .tracking import Tracker
 
     start = time.perf_counter()
     rng = np.random.default_rng(0)
@@ -31,4 +34,8 @@ def warm_up() -> float:
     lines2d, _ = project_building(building, camera, pose)
     line_map = LineMap.from_segments(building.edges, name="warm-up", surfaces=building.mesh())
     localize_segments(lines2d, line_map, camera)
+    tracker = Tracker(line_map, camera)
+    tracker.start_at(pose)
+    for timestamp in (0.0, 0.1):
+        tracker.step(lines2d, timestamp=timestamp)
     return time.perf_counter() - start

@@ -19,7 +19,7 @@ def _compiled_during(run) -> list[str]:
     return [f"{f.__module__}.{f.__name__}" for f in names if f.__module__.startswith("linereg")]
 
 
-def test_after_the_warm_up_a_localization_compiles_nothing():
+def test_after_the_warm_up_a_localization_and_a_tracker_compile_nothing():
     assert linereg.warm_up() > 0.0
     # another building than the warm-up's (a courtyard of four blocks), its faces as the map's surfaces
     rng = np.random.default_rng(3)
@@ -30,11 +30,14 @@ def test_after_the_warm_up_a_localization_compiles_nothing():
     line_map = linereg.LineMap.from_segments(building.edges, surfaces=building.mesh())
     results: list[linereg.Registration] = []
 
-    def localize() -> None:
+    def localize_and_track() -> None:
         results.append(linereg.localize_segments(lines2d, line_map, camera))
+        tracker = linereg.Tracker(line_map, camera)
+        tracker.start_at(pose)
+        results.extend(tracker.step(lines2d, timestamp=t) for t in (0.0, 0.1, 0.2))
 
-    assert _compiled_during(localize) == []
-    assert results[0].cam_from_world is not None
+    assert _compiled_during(localize_and_track) == []
+    assert results[0].cam_from_world is not None and results[-1].success
 
 
 def test_the_stable_argsort_is_numpys():
