@@ -59,7 +59,10 @@ def run(args: argparse.Namespace) -> int:
     # the localization's compiled kernels are compiled (a fresh install) or loaded by a process of their own
     # while the scene is scanned and mapped, instead of in the first photo's query
     warming = multiprocessing.get_context("spawn").Process(target=_warm_up, daemon=True)
-    warming.start()
+    try:
+        warming.start()
+    except OSError as e:  # an optimisation: the service's worker compiles them itself
+        say(f"  (no warm-up process: {e})")
     say(f"building the demo scene (seed {args.seed}, {args.images} photos) ...")
     scene = make_demo_scene(seed=args.seed, num_images=args.images)
     say(f"  scan: {len(scene.cloud):,} points; building the line map ...")
@@ -68,7 +71,10 @@ def run(args: argparse.Namespace) -> int:
     args.out.mkdir(parents=True, exist_ok=True)
     map_path = args.out / "demo.linemap"
     line_map.save(map_path)
-    warming.join()  # what it has not compiled yet, the service's worker would compile again
+    if warming.pid is not None:  # what it has not compiled yet, the service's worker would compile again
+        warming.join(timeout=600.0)
+        if warming.is_alive():
+            warming.terminate()
     with _localizer(map_path, line_map, args.in_process) as localize_image:
         rows = []
         with Progress(len(scene.images), "localize") as progress:
