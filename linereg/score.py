@@ -27,6 +27,7 @@ import numpy as np
 from .camera import Camera
 from .config import ScoreConfig
 from .geometry import segment_angles, segment_lengths
+from .kernels import stable_argsort
 from .threads import run_parallel, thread_count
 
 CELLS_PER_RADIUS = 8  # the empty-area raster: cells of radius / 8, fine next to the radius, cheap
@@ -453,29 +454,6 @@ def _union_lengths(i: np.ndarray, cover: np.ndarray, n: int) -> np.ndarray:
             end = max(end, cover[k, 1])
     out[current] += end - start
     return out
-
-
-@numba.njit(cache=True, nogil=True)
-def stable_argsort(keys: np.ndarray) -> np.ndarray:  # pragma: no cover - numba
-    """Returns (n,) int64: ``np.argsort(keys, kind="stable")`` of finite (n,) keys, by a bottom-up merge sort
-    (numba's own sorts cost 1-2 s of compile in each kernel that calls one, in every fresh process)."""
-    n = len(keys)
-    order, other = np.arange(n), np.empty(n, np.int64)
-    width = 1
-    while width < n:
-        for lo in range(0, n, 2 * width):
-            mid, hi = min(lo + width, n), min(lo + 2 * width, n)
-            a, b = lo, mid
-            for k in range(lo, hi):  # the left run's element first among equal keys: stable
-                if a < mid and (b >= hi or keys[order[a]] <= keys[order[b]]):
-                    other[k] = order[a]
-                    a += 1
-                else:
-                    other[k] = order[b]
-                    b += 1
-        order, other = other, order
-        width *= 2
-    return order
 
 
 def summed_area(mask: np.ndarray) -> np.ndarray:

@@ -25,6 +25,7 @@ import numpy as np
 from .camera import Camera
 from .config import ScoreConfig, SearchConfig
 from .geometry import camera_center, invert, make_cam_from_world, rotation_error_deg
+from .kernels import jacobi_rotation, stable_argsort
 from .points import Points
 from .score import (
     ImageLines,
@@ -34,7 +35,6 @@ from .score import (
     _project_clipped,
     grow,
     score_pose,
-    stable_argsort,
 )
 from .threads import map_threads, run_parallel, thread_count
 
@@ -986,26 +986,7 @@ def _solve_symmetric(
             break
         for p in range(n - 1):
             for q in range(p + 1, n):
-                if A[p, q] == 0.0:
-                    continue
-                theta = (A[q, q] - A[p, p]) / (2.0 * A[p, q])
-                if abs(theta) > 1e150:
-                    t = 0.5 / theta
-                else:
-                    t = 1.0 / (abs(theta) + np.sqrt(theta * theta + 1.0))
-                    if theta < 0.0:
-                        t = -t
-                c = 1.0 / np.sqrt(t * t + 1.0)
-                s = t * c
-                for k in range(n):  # A J, then J^T (A J); V J
-                    akp, akq = A[k, p], A[k, q]
-                    A[k, p], A[k, q] = c * akp - s * akq, s * akp + c * akq
-                for k in range(n):
-                    apk, aqk = A[p, k], A[q, k]
-                    A[p, k], A[q, k] = c * apk - s * aqk, s * apk + c * aqk
-                for k in range(n):
-                    vkp, vkq = V[k, p], V[k, q]
-                    V[k, p], V[k, q] = c * vkp - s * vkq, s * vkp + c * vkq
+                jacobi_rotation(A, V, p, q)
     smallest, largest = np.inf, 0.0
     for r in range(n):
         smallest, largest = min(smallest, abs(A[r, r])), max(largest, abs(A[r, r]))

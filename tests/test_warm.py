@@ -6,7 +6,7 @@ import numpy as np
 from numba.core import event
 
 import linereg
-from linereg.score import stable_argsort
+from linereg.kernels import stable_argsort
 from linereg.search import _solve_symmetric
 from linereg.sim.building import make_building
 from linereg.sim.views import camera_poses, project_building, street_camera

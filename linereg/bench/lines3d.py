@@ -43,19 +43,20 @@ _CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(s
 def child_main(points_path: str, map_path: str, overrides: str = "{}", intensity_path: str = "") -> None:
     """Runs ``LineMap.build`` on the points of an .npy file (and their intensities, another .npy, if given)
     with MapBuildConfig fields overridden by a JSON object (nested per section); prints JSON (seconds, RSS
-    KiB), saves the map. The clock starts after a small generated room is built (``warm_up``): what a
+    KiB), saves the map. The clock starts after a small generated room is built (``warm.warm_up_map``): what a
     process pays once (imports, compiled kernels loaded from numba's cache) is reported on its own."""
     import resource
     import time
 
     from ..config import MapBuildConfig
     from ..map.linemap import LineMap
+    from ..warm import warm_up_map
 
     points = np.load(points_path)
     intensity = np.load(intensity_path) if intensity_path else None
     config = MapBuildConfig.from_dict(json.loads(overrides))
     start = time.perf_counter()
-    warm_up(config)
+    warm_up_map(config)
     warm = time.perf_counter() - start
     before = resource.getrusage(resource.RUSAGE_SELF)
     start = time.perf_counter()
@@ -67,29 +68,6 @@ def child_main(points_path: str, map_path: str, overrides: str = "{}", intensity
     # ru_maxrss is in KiB on Linux
     stats = {"seconds": seconds, "cpu_seconds": cpu, "warm_seconds": warm, "rss_before_kib": before.ru_maxrss}
     print(json.dumps(stats | {"peak_rss_kib": after.ru_maxrss}))
-
-
-def warm_up(config: Any) -> None:
-    """Builds the map of a small generated room (a floor, two walls, a box on the floor, 1.5 cm apart,
-    2 mm noise, a heap of clutter) with ``config`` and point edges on: imports every stage and loads its
-    compiled kernels."""
-    from dataclasses import replace
-
-    from ..map.linemap import LineMap
-
-    rng = np.random.default_rng(0)
-    g = np.arange(0.0, 1.2, 0.015)
-    u, v = (a.ravel() for a in np.meshgrid(g, g))
-    zero = np.zeros_like(u)
-    box = np.arange(0.3, 0.6, 0.015)
-    bu, bv = (a.ravel() for a in np.meshgrid(box, box))
-    parts = [
-        np.c_[u, v, zero], np.c_[zero, u, v], np.c_[u, zero, v],  # floor, walls
-        np.c_[bu, bv, np.full_like(bu, 0.3)], np.c_[bu, np.full_like(bu, 0.3), bv - 0.3],  # box top, side
-        rng.uniform([0.8, 0.8, 0.0], [0.9, 0.9, 0.1], (300, 3)),  # clutter beside the floor
-    ]  # fmt: skip
-    points = np.concatenate(parts) + rng.normal(0.0, 0.002, (sum(map(len, parts)), 3))
-    LineMap.build(points, replace(config, point_edges=True))
 
 
 def build_in_child(

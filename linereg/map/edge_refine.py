@@ -171,48 +171,37 @@ def _in_bands(
                     lo0, lo1, nx, ny, order, start = _band_grid(points, first[r], first[r + 1], h)
             count = int(np.ceil((length[k] + band[k]) / band[k]))
             lo_t, hi_t = margin * band[k], length[k] - margin * band[k]
-            if brute:
-                for p in range(first[r], first[r + 1]):
-                    # written out here and below: a helper per point (returning a tuple, or an int
-                    # after writing the row itself, inlined or not) made these loops 10-15x slower
-                    r0, r1 = points[p, 0] - a[k, 0], points[p, 1] - a[k, 1]
-                    t = r0 * d[k, 0] + r1 * d[k, 1]
-                    o = r0 * across[k, 0] + r1 * across[k, 1]
-                    ok = t >= lo_t and t <= hi_t and abs(o) <= band[k] and np.isfinite(o)
-                    if ok:
-                        own = min(max(np.floor(t / band[k] + 0.5), 0.0), count - 1.0)
-                        e0 = points[p, 0] - (a[k, 0] + own * band[k] * d[k, 0])
-                        e1 = points[p, 1] - (a[k, 1] + own * band[k] * d[k, 1])
-                        ok = e0 * e0 + e1 * e1 <= 1.25 * band[k] * band[k]
-                    if ok:
-                        if fill:
-                            rows[n, 0], rows[n, 1], rows[n, 2] = k, t, o
-                            rows[n, 3] = points[p, 2] if points.shape[1] > 2 else 0.0
-                        n += 1
-                continue
-            for s in range(count):
-                ci = int(np.floor((a[k, 0] + s * band[k] * d[k, 0] - lo0) / h))
-                cj = int(np.floor((a[k, 1] + s * band[k] * d[k, 1] - lo1) / h))
-                for i in range(max(ci - 2, 0), min(ci + 3, nx)):
-                    for j in range(max(cj - 2, 0), min(cj + 3, ny)):
+            # a region of few lines: one pass over all its points; else, per sample s, the points in the
+            # cells round it whose nearest sample s is. The test is written once for both (a helper per
+            # point, tuple- or int-returning, inlined or not, made these loops 10-15x slower)
+            for s in range(1 if brute else count):
+                i0, i1, j0, j1 = 0, 1, 0, 1
+                if not brute:
+                    ci = int(np.floor((a[k, 0] + s * band[k] * d[k, 0] - lo0) / h))
+                    cj = int(np.floor((a[k, 1] + s * band[k] * d[k, 1] - lo1) / h))
+                    i0, i1, j0, j1 = max(ci - 2, 0), min(ci + 3, nx), max(cj - 2, 0), min(cj + 3, ny)
+                for i in range(i0, i1):
+                    for j in range(j0, j1):
                         c = i * ny + j
-                        for m in range(start[c], start[c + 1]):
-                            p = order[m]
+                        m0, m1 = (first[r], first[r + 1]) if brute else (start[c], start[c + 1])
+                        for m in range(m0, m1):
+                            p = m if brute else order[m]
                             r0, r1 = points[p, 0] - a[k, 0], points[p, 1] - a[k, 1]
                             t = r0 * d[k, 0] + r1 * d[k, 1]
-                            if min(max(np.floor(t / band[k] + 0.5), 0.0), count - 1.0) != s:
-                                continue  # another sample's point
                             o = r0 * across[k, 0] + r1 * across[k, 1]
-                            ok = t >= lo_t and t <= hi_t and abs(o) <= band[k] and np.isfinite(o)
-                            if ok:
-                                e0 = points[p, 0] - (a[k, 0] + s * band[k] * d[k, 0])
-                                e1 = points[p, 1] - (a[k, 1] + s * band[k] * d[k, 1])
-                                ok = e0 * e0 + e1 * e1 <= 1.25 * band[k] * band[k]
-                            if ok:
-                                if fill:
-                                    rows[n, 0], rows[n, 1], rows[n, 2] = k, t, o
-                                    rows[n, 3] = points[p, 2] if points.shape[1] > 2 else 0.0
-                                n += 1
+                            if not (t >= lo_t and t <= hi_t and abs(o) <= band[k] and np.isfinite(o)):
+                                continue
+                            own = min(max(np.floor(t / band[k] + 0.5), 0.0), count - 1.0)
+                            if not brute and own != s:
+                                continue  # another sample's point
+                            e0 = points[p, 0] - (a[k, 0] + own * band[k] * d[k, 0])
+                            e1 = points[p, 1] - (a[k, 1] + own * band[k] * d[k, 1])
+                            if e0 * e0 + e1 * e1 > 1.25 * band[k] * band[k]:
+                                continue
+                            if fill:
+                                rows[n, 0], rows[n, 1], rows[n, 2] = k, t, o
+                                rows[n, 3] = points[p, 2] if points.shape[1] > 2 else 0.0
+                            n += 1
         if not fill:
             rows = np.empty((n, 4))
     return rows

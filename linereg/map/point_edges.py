@@ -32,6 +32,7 @@ from scipy import ndimage
 from scipy.spatial import cKDTree
 
 from ..config import PointEdgesConfig
+from ..kernels import jacobi_rotation
 from ..threads import thread_count
 from .neighbours import flat_lists
 
@@ -177,34 +178,13 @@ def _least_axis(
         for pair in range(3):
             p = 0 if pair < 2 else 1
             q = 1 if pair == 0 else 2
-            _jacobi_rotation(a, v, p, q)
+            jacobi_rotation(a, v, p, q)
     m = 0
     if a[1, 1] < a[m, m]:
         m = 1
     if a[2, 2] < a[m, m]:
         m = 2
     return v[0, m], v[1, m], v[2, m]
-
-
-@numba.njit(cache=True, nogil=True)
-def _jacobi_rotation(a: np.ndarray, v: np.ndarray, p: int, q: int) -> None:  # pragma: no cover - numba
-    """Zeroes a[p, q] of the symmetric 3 x 3 ``a`` by a rotation in the (p, q) plane (a <- J^T a J),
-    accumulated into the eigenvectors ``v`` (v <- v J)."""
-    if a[p, q] == 0.0:
-        return
-    theta = (a[q, q] - a[p, p]) / (2.0 * a[p, q])
-    t = (1.0 if theta >= 0.0 else -1.0) / (abs(theta) + np.sqrt(theta * theta + 1.0))
-    c = 1.0 / np.sqrt(t * t + 1.0)
-    s = t * c
-    for r in range(3):
-        arp, arq = a[r, p], a[r, q]
-        a[r, p], a[r, q] = c * arp - s * arq, s * arp + c * arq
-    for r in range(3):
-        apr, aqr = a[p, r], a[q, r]
-        a[p, r], a[q, r] = c * apr - s * aqr, s * apr + c * aqr
-    for r in range(3):
-        vrp, vrq = v[r, p], v[r, q]
-        v[r, p], v[r, q] = c * vrp - s * vrq, s * vrp + c * vrq
 
 
 @numba.njit(cache=True, nogil=True)
