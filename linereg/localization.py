@@ -67,9 +67,11 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
             points = map_points(segments, config.points, map_gap_m(segments, config.points))
             signatures = map_signatures(points, line_map.clusters.labels, line_map.clusters.directions)
             parts = line_map.visible_parts if _has_surfaces(line_map) else None
+            footprint = line_map.surface_footprint if _has_surfaces(line_map) else None
             view = MapView(
-                segments, line_map.clusters, points, signatures, parts=parts, accuracy_m=line_map.accuracy_m
-            )
+                segments, line_map.clusters, points, signatures, parts=parts, accuracy_m=line_map.accuracy_m,
+                footprint=footprint,
+            )  # fmt: skip
             cached = (config.points, view)
             line_map.cache["view"] = cached
         return cached[1]
@@ -84,6 +86,7 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
         signatures,
         parts=_subset_parts(line_map, index),
         accuracy_m=line_map.accuracy_m,
+        footprint=line_map.surface_footprint if _has_surfaces(line_map) else None,
     )
 
 

@@ -30,7 +30,15 @@ from .priors import Prior, admits, admits_pose, search_region
 from .refine import Refinement, refine_pose
 from .registration import Registration, check_segments
 from .rotation import refine_candidates, rotation_candidates, single_direction_candidates
-from .score import ImageLines, Score, image_lines, project_clipped, score_pose, shifted_values
+from .score import (
+    ImageLines,
+    Score,
+    coverable_length,
+    image_lines,
+    project_clipped,
+    score_pose,
+    shifted_values,
+)
 from .search import Found, MapSignatures, map_signatures, screen, search, solve_all
 from .significance import SearchSpace, chance_probabilities, depth_of, log10_tail
 from .threads import map_threads
@@ -92,6 +100,9 @@ class MapView:
     visible: np.ndarray | None = None
     parts: Callable[[Camera, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
     accuracy_m: float = 0.0  # how well the map places its lines (``LineMap.accuracy_m``; 0: exact)
+    # (camera, cam_from_world, cell_px) -> the cells whose ray meets the map's surfaces
+    # (``LineMap.surface_footprint``), None without surfaces
+    footprint: Callable[[Camera, np.ndarray, float], np.ndarray | None] | None = None
 
 
 def register_undistorted(
@@ -227,6 +238,12 @@ def decide(
         nfa = log10_nfa(best.cam_from_world, distinct, seen[order[0]][1], image, camera, config, space)
     rivals.sort(key=lambda p: -p[1])
     alternatives = _distinct(rivals, lambda rival: rival[0], lines3d, dc)[:8]
+
+    def coverable() -> float:  # the image's line length the map could explain at the best pose
+        T = best.cam_from_world
+        footprint = None if view.footprint is None else view.footprint(camera, T, config.score.distance_px)
+        return coverable_length(image, camera, T, seen[order[0]][1], footprint, config.score)
+
     runner_up = max((s for _, s, _ in alternatives), default=0.0)
     explained = best.score.explained_length / max(image.total_length, 1e-9)
     reason = ""
@@ -234,8 +251,8 @@ def decide(
         reason = "the best pose explains none of the image's lines"
     elif len(matches) < config.min_inliers:
         reason = f"the best pose matches {len(matches)} image segments, fewer than {config.min_inliers}"
-    elif explained < dc.min_explained_fraction:
-        reason = f"the best pose explains {100 * explained:.0f} % of the image's lines (< {100 * dc.min_explained_fraction:.0f} %)"
+    elif short := explains_too_little(best.score.explained_length, image, coverable, dc):
+        reason = f"the best pose {short}"
     elif nfa >= dc.max_log10_nfa:
         reason = (
             f"not significant: the best pose matches {len(matches)} of {len(image.segments)} image segments "
@@ -310,6 +327,33 @@ def decide(
         alternative_scores=np.array([s for _, s, _ in alternatives], dtype=np.float64),
         timings=timer.finish(),
     )
+
+
+def explains_too_little(
+    explained_px: float, image: ImageLines, coverable: Callable[[], float], dc: DecideConfig
+) -> str:
+    """Returns why a pose explaining ``explained_px`` of the image's line length explains too little ("" if
+    it does not): less than ``min_explained_fraction`` of the line length lying where the map could explain
+    it at that pose (``coverable()``, ``score.coverable_length``; asked for only when the pose explains less
+    than that share of the whole image). The floor is the map's to reach: a single LiDAR sweep covers the
+    lower half of a street photo, and a pose explaining 15 % of the whole image would explain 20-30 % of
+    what the sweep covers (the true poses of the shared sweeps: 50-70 % of the photos' line length
+    coverable), a bar a fused room, covering nearly all of its photos, is not held to."""
+    total = image.total_length
+    floor = dc.min_explained_fraction
+    if explained_px >= floor * total:
+        return ""
+    room = max(coverable(), explained_px)
+    if explained_px >= floor * room:
+        return ""
+
+    def percent(part: float, whole: float) -> int:  # rounded down: 14.6 % is not shown as the floor's 15 %
+        return int(np.floor(100.0 * part / max(whole, 1e-9) + 1e-9))
+
+    share = f"{percent(explained_px, total)} % of the image's lines"
+    if room < total:
+        share += f", {percent(explained_px, room)} % of the {percent(room, total)} % the map covers"
+    return f"explains {share} (< {100 * floor:.0f} %)"
 
 
 def undetermined(

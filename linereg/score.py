@@ -456,6 +456,41 @@ def _union_lengths(i: np.ndarray, cover: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def coverable_length(
+    image: ImageLines,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    parts: np.ndarray,
+    surfaces: np.ndarray | None,
+    config: ScoreConfig,
+) -> float:
+    """Returns the image's line length (px) lying where a map could explain it at a pose: within the score's
+    distance of the projected (K, 6) world map ``parts`` the pose sees, or of the map's surfaces
+    (``surfaces``: (h, w) bool cells of ``distance_px`` pixels whose ray meets one, ``Visibility.footprint``).
+    A map without surfaces (None) says nothing of what it covers: the whole image's line length.
+
+    A single LiDAR sweep covers the lower half of a street photo: the image lines above it (trees, upper
+    facades, the sky's wires) are beyond what any pose could explain with it."""
+    if surfaces is None:
+        return image.total_length
+    cell = config.distance_px
+    mask = surfaces.copy()
+    projected, _ = project_clipped(parts, camera, cam_from_world, config.min_depth_m)
+    if len(projected):  # every half cell along each projected part (cells as ``_in_cells`` reads them)
+        length = np.hypot(projected[:, 2] - projected[:, 0], projected[:, 3] - projected[:, 1])
+        count = np.maximum(np.ceil(length / (0.5 * cell)).astype(np.int64), 1) + 1
+        owner = np.repeat(np.arange(len(projected)), count)
+        t = (np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)) / (count[owner] - 1)
+        p = projected[owner]
+        c = ((p[:, 0] + t * (p[:, 2] - p[:, 0]) + 0.5) / cell).astype(np.int64)
+        r = ((p[:, 1] + t * (p[:, 3] - p[:, 1]) + 0.5) / cell).astype(np.int64)
+        inside = (r >= 0) & (r < mask.shape[0]) & (c >= 0) & (c < mask.shape[1])
+        mask[r[inside], c[inside]] = True
+    # a line within the score's distance (one cell) of a marked cell could be explained
+    mask = cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    return _length_in_cells(image.segments, mask, cell, summed_area(mask))
+
+
 def summed_area(mask: np.ndarray) -> np.ndarray:
     """Returns (h + 1, w + 1) int64: the count of True cells of (h, w) ``mask`` above and left of each corner."""
     out = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), np.int64)

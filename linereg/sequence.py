@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 from functools import cache, partial
 
@@ -29,7 +29,7 @@ import gtsam
 import numpy as np
 
 from .camera import Camera
-from .config import LineDetectConfig, RegisterConfig
+from .config import LineDetectConfig, RegisterConfig, ScoreConfig
 from .errors import InvalidInputError
 from .geometry import camera_center, rotation_error_deg
 from .graph import (
@@ -56,6 +56,7 @@ from .localization import localize_segments
 from .map.linemap import LineMap
 from .pipeline import (
     differs,
+    explains_too_little,
     fine_config,
     orbit_rivals,
     precision_is_evidence,
@@ -66,7 +67,7 @@ from .pipeline import (
 from .priors import Prior
 from .refine import refine_pose
 from .registration import Registration
-from .score import ImageLines, image_lines, score_pose
+from .score import ImageLines, coverable_length, image_lines, score_pose
 from .significance import depth_of
 from .threads import both
 
@@ -143,7 +144,10 @@ def localize_sequence(
     if relative is None and config.smoothness:
         log.info("sequence: no odometry; a random-walk smoothness prior links consecutive frames")
     graph_start = time.perf_counter()
-    out = smooth(images, line_map.segments, cam, alone, relative, covariances, config, line_map.accuracy_m)
+    out = smooth(
+        images, line_map.segments, cam, alone, relative, covariances, config, line_map.accuracy_m,
+        map_coverable(line_map, cam, config.register.score),
+    )  # fmt: skip
     share = (time.perf_counter() - graph_start) / max(len(out), 1)
     log.debug("sequence: %.1f s alone, %.1f s graph", graph_start - start, share * len(out))
     return [replace(r, timings={**r.timings, "graph": share}) for r in out]
@@ -206,8 +210,13 @@ def refine_from(
     reason = ""
     if len(matches) < rc.min_inliers:
         reason = f"tracking: {len(matches)} matched image segments (< {rc.min_inliers})"
-    elif explained < rc.decide.min_explained_fraction:
-        reason = f"tracking: the pose explains {100 * explained:.0f} % of the image's lines"
+    elif short := explains_too_little(
+        r.score.explained_length,
+        image,
+        partial(map_coverable(line_map, camera, rc.score), image, r.cam_from_world),
+        rc.decide,
+    ):
+        reason = f"tracking: the pose {short}"
     elif not np.isfinite(r.covariance).all() or not r.rms_px <= config.max_rms_px:
         reason = f"tracking: the fit is degenerate or loose (rms {r.rms_px:.1f} px)"
     elif moved > radius_m:
@@ -296,6 +305,27 @@ def rival_test(
         reason = f"{AMBIGUOUS}: the fix {kind} {turn:.0f} deg ({shift:.2f} m) scores {share:.0f} % of it"
         return replace(fix, success=False, reason=reason)
     return passed()
+
+
+def map_coverable(
+    line_map: LineMap, camera: Camera, config: ScoreConfig
+) -> Callable[[ImageLines, np.ndarray], float]:
+    """Returns (image, cam_from_world) -> the image's line length the map could explain at that pose
+    (``score.coverable_length``: near its visible parts or its surfaces; a map without surfaces, the whole
+    image's), for ``pipeline.explains_too_little``."""
+
+    def coverable(image: ImageLines, cam_from_world: np.ndarray) -> float:
+        footprint = line_map.surface_footprint(camera, cam_from_world, config.distance_px)
+        if footprint is None:
+            return image.total_length
+        # the segments potentially visible from the camera's cell (conservative: the same parts as the
+        # whole map's, at the cost of what is near)
+        centre = camera_center(cam_from_world)
+        seen = line_map.potentially_visible(centre, centre)
+        parts, _ = line_map.visible_parts(camera, cam_from_world, seen)
+        return coverable_length(image, camera, cam_from_world, parts, footprint, config)
+
+    return coverable
 
 
 def visible_mask(line_map: LineMap, centre: np.ndarray, radius_m: float) -> np.ndarray | None:
@@ -449,10 +479,12 @@ def smooth(
     covariances: list[np.ndarray] | None,
     config: SequenceConfig,
     accuracy_m: float = 0.0,
+    coverable: Callable[[ImageLines, np.ndarray], float] | None = None,
 ) -> list[Registration]:
     """Returns the frames' Registrations after the graph (steps 2 and 3 of the module docstring);
     ``accuracy_m``: how well the map places its lines (``LineMap.accuracy_m``), added to each frame's
-    reported covariance (``pipeline.with_map_floor``)."""
+    reported covariance (``pipeline.with_map_floor``); ``coverable``: (image, cam_from_world) -> the image's
+    line length the map could explain there (``map_coverable``; None: the whole image's)."""
     links = _links(len(images), relative, covariances, config)
     poses = _initial(alone, links, config)
     rc = config.register
@@ -502,6 +534,7 @@ def smooth(
             relative is not None,
             config,
             accuracy_m,
+            coverable,
         )
         for k in range(len(images))
     ]
@@ -659,6 +692,7 @@ def _result(
     odometry: bool,
     config: SequenceConfig,
     accuracy_m: float = 0.0,
+    coverable: Callable[[ImageLines, np.ndarray], float] | None = None,
 ) -> Registration:
     """Returns frame k's Registration at its smoothed pose: a fix of its own lines, or from neighbours;
     its covariance: the graph's marginal plus what the map's ``accuracy_m`` adds."""
@@ -670,7 +704,9 @@ def _result(
     matches = score.matches(rc.decide.min_cover)
     explained = score.explained_length / max(image.total_length, 1e-9)
     linked = alone.success or (odometry and any(j in (k, k - 1) for j, _, _ in links))
-    own = k in fits and len(matches) >= rc.min_inliers and explained >= rc.decide.min_explained_fraction
+    room = partial(coverable, image, pose) if coverable is not None else lambda: image.total_length
+    enough = not explains_too_little(score.explained_length, image, room, rc.decide)
+    own = k in fits and len(matches) >= rc.min_inliers and enough
     rms = float(np.sqrt(np.mean(np.square(fits[k].residuals(pose))))) if k in fits else float("nan")
     own = own and rms <= config.max_rms_px
     reason = ""

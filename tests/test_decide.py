@@ -309,3 +309,56 @@ def test_precision_compares_fits_of_the_same_map_lines_or_of_an_accurate_map(cam
     assert evidence(orbit, 0.05) and evidence(orbit, 0.0)
     assert not evidence(shifted, 0.05)
     assert evidence(shifted, 0.0) and evidence(shifted, 0.01)  # 0.8 px at 10 m: resolved
+
+
+def test_the_explained_floor_counts_the_image_lines_the_map_covers():
+    """A pose must explain ``min_explained_fraction`` of the image's line length lying where the map could
+    explain it: a sweep covering half of a photo is not held to 15 % of the whole; what it covers is asked
+    for only below that."""
+    import pytest
+
+    from linereg.config import DecideConfig
+    from linereg.pipeline import explains_too_little
+
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    image = image_lines(np.array([[0.0, 10, 600, 10], [0, 200, 400, 200]]), camera, RegisterConfig().score)
+    total, dc = image.total_length, DecideConfig()
+
+    def never() -> float:
+        pytest.fail("the map's cover was asked for")
+
+    assert explains_too_little(0.2 * total, image, never, dc) == ""
+    assert explains_too_little(0.1 * total, image, lambda: 0.5 * total, dc) == ""  # 20 % of what it covers
+    assert explains_too_little(0.1 * total, image, lambda: total, dc)  # a map covering all: 10 %
+    reason = explains_too_little(0.05 * total, image, lambda: 0.5 * total, dc)
+    assert reason == "explains 5 % of the image's lines, 10 % of the 50 % the map covers (< 15 %)"
+
+
+def test_a_photo_whose_upper_half_the_map_does_not_hold_is_judged_on_what_the_map_covers():
+    """A facade photo whose sky is full of lines (wires, branches) that no map line could explain: the best
+    pose explains under 15 % of the whole image's line length but far more of what the map's surfaces
+    cover, and is the answer; a map of the same segments without surfaces says nothing of what it
+    covers, and the same pose explains too little."""
+    segments, surfaces = facade_copies()
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    truth = look_at(np.array([2.0, 0.0, 1.5]), np.array([20.0, 0.0, 1.5]))
+    lines2d, _ = project_clipped(segments, camera, truth, 0.05, None)
+    rng = np.random.default_rng(3)
+    centres = rng.uniform([40.0, 35.0], [600.0, 75.0], (400, 2))  # above every surface's outline
+    angles = rng.uniform(0.0, np.pi, 400)
+    half = 30.0 * np.c_[np.cos(angles), np.sin(angles)]
+    sky = np.c_[centres - half, centres + half]
+    photo = np.r_[lines2d, sky]
+    lengths = np.linalg.norm(photo[:, 2:] - photo[:, :2], axis=1)
+    assert lengths[: len(lines2d)].sum() < 0.15 * lengths.sum()
+    # the calibration case: a rough guess of the pose (about 2 deg and 0.3 m off)
+    guess = truth @ make_cam_from_world(rotation_from_vector(np.radians([1.2, -1.0, 1.2])), [0.2, -0.1, 0.2])
+    prior = linereg.Prior(cam_from_world=guess, sigma_rot_deg=3.0, radius_m=0.5)
+    mapped = linereg.LineMap.from_segments(segments, surfaces=surfaces)
+    seen = linereg.localize_segments(photo, mapped, camera, prior=prior)
+    assert seen.success, seen.reason
+    assert seen.explained_fraction < 0.15
+    assert rotation_error_deg(seen.cam_from_world[:3, :3], truth[:3, :3]) < 1.0
+    assert np.linalg.norm(camera_center(seen.cam_from_world) - camera_center(truth)) < 0.3
+    bare = linereg.localize_segments(photo, linereg.LineMap.from_segments(segments), camera, prior=prior)
+    assert not bare.success and "of the image's lines (< 15 %)" in bare.reason

@@ -303,3 +303,26 @@ def test_potentially_visible_keeps_what_the_ray_test_of_a_camera_in_the_box_show
         np.array([[10.5, 0.5, 0.5, 10.5, 0.5, 2.5]]), surfaces=quad_triangles(wall)
     )  # 0.5 m behind: hidden from everywhere in the box, by both tests
     assert len(far_behind.potentially_visible(centre - 0.25, centre + 0.25)) == 0
+
+
+def test_the_surface_footprint_is_where_a_cells_ray_meets_a_surface(line_map):
+    lm, faces = line_map
+    cam = look_at(np.array([2.0, -2.0, 1.0]), np.array([10.0, 2.0, 1.8]))
+    cell = 8.0
+    got = lm.surface_footprint(CAMERA, cam, cell)
+    assert got.shape == (60, 80) and got.dtype == bool
+    # brute force: every cell's centre ray, 1000 m long, against the rectangles
+    u = (np.arange(80) + 0.5) * cell - 0.5
+    v = (np.arange(60) + 0.5) * cell - 0.5
+    uu, vv = np.meshgrid(u, v)
+    rays = np.stack([(uu - CAMERA.cx) / CAMERA.fx, (vv - CAMERA.cy) / CAMERA.fy, np.ones_like(uu)], -1)
+    centre = -cam[:3, :3].T @ cam[:3, 3]
+    ends = (
+        centre
+        + 1000.0 * (rays.reshape(-1, 3) @ cam[:3, :3]) / np.linalg.norm(rays.reshape(-1, 3), axis=1)[:, None]
+    )
+    expected = hits_before(centre, ends, faces, 0.0).reshape(60, 80)
+    assert expected.any() and not expected.all()  # the wall ends inside the view
+    # rays grazing a rectangle's edge may fall either way (float32 in the ray caster)
+    assert (got != expected).mean() < 0.01
+    assert LineMap.from_segments(lm.segments).surface_footprint(CAMERA, cam, cell) is None

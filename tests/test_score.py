@@ -1,6 +1,7 @@
 """The score's penalty: map length predicted in empty image areas, with and without shifts."""
 
 import numpy as np
+import pytest
 
 from linereg.camera import Camera
 from linereg.config import ScoreConfig
@@ -56,3 +57,27 @@ def test_shifted_scores_of_a_sparse_image_are_the_scores_of_the_shifted_projecti
         assert abs(value - expected.value) <= 1e-9 * max(abs(expected.value), 1.0)
         moved = projected + np.tile(shift, 2)
         assert abs(expected.unexplained - sampled_in_cells(moved, image.empty, image.cell_px)) <= 1e-6
+
+
+def test_the_coverable_length_is_the_line_length_near_surfaces_or_seen_map_lines():
+    """A line counts where the map's surfaces or its projected visible lines come within the score's
+    distance of it; a map without surfaces covers the whole image."""
+    from linereg.score import coverable_length
+
+    camera = Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    config = ScoreConfig()
+    lines = np.array([[20.0, 100, 300, 100], [340, 300, 620, 300], [400, 50, 600, 50]])
+    image = image_lines(lines, camera, config)
+    cell = config.distance_px
+    surfaces = np.zeros((int(np.ceil(480 / cell)), int(np.ceil(640 / cell))), bool)
+    surfaces[:, : int(320 / cell)] = True  # the left half of the image
+    # a map line 10 m ahead projecting 2 px below the second image line
+    z, y = 10.0, (302.0 - camera.cy) / camera.fy * 10.0
+    part = np.array([[(340 - camera.cx) / camera.fx * z, y, z, (620 - camera.cx) / camera.fx * z, y, z]])
+    eye = np.eye(4)
+    got = coverable_length(image, camera, eye, part, surfaces, config)
+    assert abs(got - 560.0) <= 2 * cell  # the first two lines, to a cell at their ends
+    assert coverable_length(image, camera, eye, np.zeros((0, 6)), surfaces, config) == pytest.approx(
+        280.0, abs=2 * cell
+    )
+    assert coverable_length(image, camera, eye, part, None, config) == image.total_length

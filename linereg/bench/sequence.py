@@ -162,7 +162,7 @@ def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str
     from ..graph import frame_lines
     from ..priors import Prior
     from ..score import image_lines
-    from ..sequence import SequenceConfig, frames_alone, smooth
+    from ..sequence import SequenceConfig, frames_alone, map_coverable, smooth
     from ..sim.paths import chain
 
     out.mkdir(parents=True, exist_ok=True)
@@ -182,7 +182,10 @@ def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str
         flush=True,
     )
     start = time.perf_counter()
-    smoothed = smooth(images, p["line_map"].segments, cam, alone, rel, cov, config, p["line_map"].accuracy_m)
+    smoothed = smooth(
+        images, p["line_map"].segments, cam, alone, rel, cov, config, p["line_map"].accuracy_m,
+        map_coverable(p["line_map"], cam, config.register.score),
+    )  # fmt: skip
     graph_s = (time.perf_counter() - start) / len(lines)
     print(f"  graph: {graph_s * len(lines):.1f} s", flush=True)
     rows = {

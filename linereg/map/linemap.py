@@ -333,6 +333,13 @@ class LineMap:
         """
         return self.visibility().visible_parts(camera, cam_from_world, index)
 
+    def surface_footprint(
+        self, camera: Camera, cam_from_world: np.ndarray, cell_px: float
+    ) -> np.ndarray | None:
+        """Returns (h, w) bool cells of ``cell_px`` pixels whose ray from the camera meets the map's
+        surfaces (``Visibility.footprint``), None for a map without surfaces."""
+        return self.visibility().footprint(camera, cam_from_world, cell_px)
+
     @property
     def accuracy_m(self) -> float:
         """How well the map places its lines (m): the point spacing of the cloud it was built from (an edge

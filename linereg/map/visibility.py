@@ -77,6 +77,26 @@ class Visibility:
         seen = self._unoccluded(points, camera_center(cam_from_world))
         return _runs(self.segments[rows], rows, owner, tt, seen, count)
 
+    def footprint(self, camera: Camera, cam_from_world: np.ndarray, cell_px: float) -> np.ndarray | None:
+        """Returns (h, w) bool cells of ``cell_px`` pixels (cell (r, c) centred on pixel
+        ((c + 0.5) cell_px - 0.5, (r + 0.5) cell_px - 0.5)) whose ray from the camera meets one of the
+        map's surfaces: where the map holds something to explain an image line. None without surfaces."""
+        if self.surfaces is None:
+            return None
+        from .._open3d import open3d
+
+        o3d = open3d()
+        h, w = int(np.ceil(camera.height / cell_px)), int(np.ceil(camera.width / cell_px))
+        u = ((np.arange(w) + 0.5) * cell_px - 0.5 - camera.cx) / camera.fx
+        v = ((np.arange(h) + 0.5) * cell_px - 0.5 - camera.cy) / camera.fy
+        rays = np.empty((h, w, 6), dtype=np.float32)
+        rays[..., :3] = camera_center(cam_from_world) - self.surfaces.origin
+        R = np.asarray(cam_from_world, dtype=np.float64)[:3, :3]
+        # world direction R^T (u, v, 1) of each cell's pixel
+        rays[..., 3:] = u[None, :, None] * R[0] + v[:, None, None] * R[1] + R[2]
+        hit = self._raycasting_scene().cast_rays(o3d.core.Tensor(rays.reshape(-1, 6)))["t_hit"].numpy()
+        return np.isfinite(hit).reshape(h, w)
+
     def _unoccluded(self, points: np.ndarray, centre: np.ndarray) -> np.ndarray:
         """Returns (S,) bool: is no surface nearer than each (S, 3) point along its ray from (3,) centre?"""
         if self.surfaces is None or len(points) == 0:
