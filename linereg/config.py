@@ -403,9 +403,10 @@ class DecideConfig:
     # many image segments by chance; an answer needs log10 of it below this (0: fewer than one, the
     # a-contrario rule)
     max_log10_nfa: float = 0.0
-    # ... and explain at least this fraction of the image's line length (also a tracked frame's fix test):
-    # the chance model assumes independent segments, and on the real kitchen sequence a wrong global pose
-    # explaining under it passed the significance test alone (docs/measurements.md)
+    # ... and explain at least this fraction of the image's line length lying where the map could explain it
+    # at that pose (near its surfaces or its visible lines: ``pipeline.explains_too_little``; also a tracked
+    # frame's fix test): the chance model assumes independent segments, and on the real kitchen sequence a
+    # wrong global pose explaining under it passed the significance test alone (docs/measurements.md)
     min_explained_fraction: float = 0.15
     contenders: int = 4  # the best distinct poses of the search are refined before deciding
     # the best pose turned (pan, tilt) beyond distinct_angle_deg, moving its projection up to this fraction

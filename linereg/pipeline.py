@@ -198,7 +198,8 @@ def decide(
 ) -> Registration:
     """Returns the Registration of the best refined pose (``seen``: the ``view_score`` of each), with
     ``success`` only when it has enough matches,
-    explains ``min_explained_fraction`` of the image, more than chance would give any of the poses the search
+    explains ``min_explained_fraction`` of the image lines the map covers at it (``explains_too_little``),
+    more than chance would give any of the poses the search
     examined (``space``: ``significance.py``), and every distinct pose either scores below ``(1 - margin)``
     of it or leaves unexplained image lines that the best explains beyond chance while explaining none
     beyond the best that chance would not (``advantage_nfa`` both ways): the

@@ -90,7 +90,7 @@ class SequenceConfig:
     odometry_pos_fraction: float = 0.03
     odometry_floor_m: float = 0.005
     # a frame refined from its prediction is a fix when it matches register.min_inliers image segments,
-    # explains decide.min_explained_fraction of its lines and fits them within max_rms_px ...
+    # explains decide.min_explained_fraction of its lines the map covers and fits them within max_rms_px ...
     max_rms_px: float = 2.5
     # ... and moved less than the search radius from its prediction: relocalize_radius_m, plus 3 sigma of
     # the odometry since the last fix, at most max_relocalize_radius_m (also the Prior of a relocalization)
