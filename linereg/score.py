@@ -477,13 +477,9 @@ def coverable_length(
     mask = surfaces.copy()
     projected, _ = project_clipped(parts, camera, cam_from_world, config.min_depth_m)
     if len(projected):  # every half cell along each projected part (cells as ``_in_cells`` reads them)
-        length = np.hypot(projected[:, 2] - projected[:, 0], projected[:, 3] - projected[:, 1])
-        count = np.maximum(np.ceil(length / (0.5 * cell)).astype(np.int64), 1) + 1
-        owner = np.repeat(np.arange(len(projected)), count)
-        t = (np.arange(len(owner)) - np.repeat(np.cumsum(count) - count, count)) / (count[owner] - 1)
-        p = projected[owner]
-        c = ((p[:, 0] + t * (p[:, 2] - p[:, 0]) + 0.5) / cell).astype(np.int64)
-        r = ((p[:, 1] + t * (p[:, 3] - p[:, 1]) + 0.5) / cell).astype(np.int64)
+        _, points = _points_along(projected, 0.5 * cell)
+        c = ((points[:, 0] + 0.5) / cell).astype(np.int64)
+        r = ((points[:, 1] + 0.5) / cell).astype(np.int64)
         inside = (r >= 0) & (r < mask.shape[0]) & (c >= 0) & (c < mask.shape[1])
         mask[r[inside], c[inside]] = True
     # a line within the score's distance (one cell) of a marked cell could be explained
@@ -658,11 +654,7 @@ def _segment_grid(
     cells of its dilated box)."""
     w, h = int(np.ceil((width + 0.5) / cell)), int(np.ceil((height + 0.5) / cell))
     reach = distance_px + 0.5 * cell
-    length = segment_lengths(lines2d)
-    count = np.maximum(np.ceil(length / (0.25 * cell)).astype(np.int64), 1) + 1
-    owner = np.repeat(np.arange(len(lines2d)), count)
-    t = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)) / (count[owner] - 1)
-    points = lines2d[owner, 0:2] + t[:, None] * (lines2d[owner, 2:4] - lines2d[owner, 0:2])
+    owner, points = _points_along(lines2d, 0.25 * cell)
     keys = []
     for ox in (-reach, 0.0, reach):
         for oy in (-reach, 0.0, reach):
@@ -674,6 +666,15 @@ def _segment_grid(
     cells, items = np.divmod(pairs, max(len(lines2d), 1))
     ptr = np.searchsorted(cells, np.arange(w * h + 1)).astype(np.int64)
     return ptr, items.astype(np.int64), w
+
+
+def _points_along(lines2d: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((P,) int64 the segment of each point, (P, 2) points) along (N, 4) segments, both ends
+    included, at most ``spacing`` apart."""
+    count = np.maximum(np.ceil(segment_lengths(lines2d) / spacing).astype(np.int64), 1) + 1
+    owner = np.repeat(np.arange(len(lines2d)), count)
+    t = (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count)) / (count[owner] - 1)
+    return owner, lines2d[owner, 0:2] + t[:, None] * (lines2d[owner, 2:4] - lines2d[owner, 0:2])
 
 
 def _empty_cells(lines2d: np.ndarray, width: int, height: int, radius_px: float) -> tuple[np.ndarray, float]:
