@@ -143,6 +143,29 @@ def test_a_frame_after_a_loss_is_searched_for_not_refined_from_its_prediction(sc
         assert pos < 0.01 and rot < 0.2
 
 
+def test_a_map_fitting_loosely_is_tracked_as_loosely_as_its_relocalized_fix_fits():
+    # a map whose lines lie ~3.5 px off the photo's (each shifted 3 cm, as a fused RGB-D room's are): the
+    # first frame's relocalization (decided against its rivals) fits that loosely, and so may the frames
+    # tracked after it (sequence.fit_limit), where a fixed 2.5 px bar relocalized every frame
+    line_map, truth, frames = _scene(6)
+    offsets = np.random.default_rng(1).normal(size=(len(line_map.segments), 3)) * 0.03
+    loose = LineMap.from_segments(line_map.segments + np.c_[offsets, offsets])
+    relative, covariances = _odometry(truth)
+    config = SequenceConfig()
+    images = [image_lines(f, CAMERA, config.register.score) for f in frames]
+    first = Prior(cam_from_world=truth[0], radius_m=0.3, sigma_rot_deg=2.0)
+    alone = frames_alone(frames, images, loose, CAMERA, relative, covariances, config, first)
+    assert alone[0].success and alone[0].rms_px > config.max_rms_px
+    for k in range(1, len(frames)):
+        assert alone[k].success and "relocalize" not in alone[k].timings, (k, alone[k].reason)
+        rot, pos, _ = pose_errors(alone[k].cam_from_world, truth[k])
+        assert pos < 0.15 and rot < 1.5  # the map's own error: its lines are 5 cm off, 4 m away
+    bar = sequence.refine_from(images[1], loose, CAMERA, truth[1], 0.5, config)
+    assert not bar.success and "loose" in bar.reason
+    assert sequence.fit_limit(alone[0].rms_px, config) == config.loose_factor * alone[0].rms_px
+    assert sequence.fit_limit(None, config) == sequence.fit_limit(1.0, config) == config.max_rms_px
+
+
 def test_a_fix_far_from_the_odometrys_prediction_is_not_claimed_alone(scene):
     line_map, truth, frames = scene
     relative, covariances = _odometry(truth)
