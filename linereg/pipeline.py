@@ -169,8 +169,15 @@ def register_undistorted(
     # III-D: GTSAM refinement of the best distinct poses on their matched fragments
     with timer("refine"):
         refined = [
-            refine_pose(
-                image, view.segments, camera, f.cam_from_world, config.refine, config.score, view.visible
+            no_worse(
+                f.cam_from_world,
+                refine_pose(
+                    image, view.segments, camera, f.cam_from_world, config.refine, config.score, view.visible
+                ),
+                image,
+                view,
+                camera,
+                config,
             )
             for f in _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
         ]
@@ -722,6 +729,25 @@ def _distinct(
         if all(differs(pose(item), pose(k), lines3d, dc) for k in kept):
             kept.append(item)
     return kept
+
+
+def no_worse(
+    start: np.ndarray,
+    refined: Refinement,
+    image: ImageLines,
+    view: MapView,
+    camera: Camera,
+    config: RegisterConfig,
+) -> Refinement:
+    """Returns the refinement of the (4, 4) pose ``start``, or ``start`` itself (with the refinement's
+    covariance and rms) when the refinement lowers its score below ``(1 - margin)`` of the start's: the fit
+    of matched fragments re-associates at a tolerance wider than the score's, and on real clutter wrong
+    pairs can pull it off what the score found (18 of the 71 refinements of the shared real photos with a
+    rough prior lost more than that). The score decides; a refinement that loses by the margin failed."""
+    before = score_pose(image, view.segments, camera, start, config.score, view.visible)
+    if refined.score.value >= (1.0 - config.decide.margin) * before.value:
+        return refined
+    return replace(refined, cam_from_world=start, score=before)
 
 
 def _found_pose(f: Found) -> np.ndarray:

@@ -13,7 +13,8 @@ from linereg.geometry import (
     rotation_from_vector,
 )
 from linereg.localization import map_view
-from linereg.pipeline import fine_value, in_basin, turned_rival, view_score
+from linereg.pipeline import fine_value, in_basin, no_worse, turned_rival, view_score
+from linereg.refine import refine_pose
 from linereg.score import image_lines, project_clipped, score_pose, score_projected, shifted_values
 from linereg.sim.synthetic import look_at, paper_scene, project_visible
 
@@ -362,3 +363,26 @@ def test_a_photo_whose_upper_half_the_map_does_not_hold_is_judged_on_what_the_ma
     assert np.linalg.norm(camera_center(seen.cam_from_world) - camera_center(truth)) < 0.3
     bare = linereg.localize_segments(photo, linereg.LineMap.from_segments(segments), camera, prior=prior)
     assert not bare.success and "of the image's lines (< 15 %)" in bare.reason
+
+
+def test_a_refinement_that_loses_the_score_keeps_the_pose_the_score_found(rng):
+    """A refinement is kept when it scores within the margin of its start (here it improves a start 0.3 deg
+    off); one that loses more (a fit pulled by wrong pairs, here a pose 3 deg off put in its place) gives
+    way to the start, with the refinement's covariance."""
+    scene = paper_scene(rng, 100, 0.3, 0.3, 2.0)
+    config = RegisterConfig()
+    view = map_view(linereg.LineMap.from_segments(scene.lines3d), None, config)
+    image = image_lines(scene.lines2d, scene.camera, config.score)
+    start = scene.cam_from_world.copy()
+    start[:3, :3] = rotation_from_vector(np.radians([0.3, 0.0, 0.0])) @ start[:3, :3]
+    refined = refine_pose(image, scene.lines3d, scene.camera, start, config.refine, config.score)
+    kept = no_worse(start, refined, image, view, scene.camera, config)
+    assert kept is refined
+    pulled = scene.cam_from_world.copy()
+    pulled[:3, :3] = rotation_from_vector(np.radians([0.0, 3.0, 0.0])) @ pulled[:3, :3]
+    lost = type(refined)(pulled, score_pose(image, scene.lines3d, scene.camera, pulled, config.score),
+                         refined.covariance, refined.rms_px, refined.rounds)  # fmt: skip
+    assert lost.score.value < (1.0 - config.decide.margin) * refined.score.value
+    back = no_worse(start, lost, image, view, scene.camera, config)
+    assert np.array_equal(back.cam_from_world, start) and back.covariance is refined.covariance
+    assert back.score.value == score_pose(image, scene.lines3d, scene.camera, start, config.score).value
