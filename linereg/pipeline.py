@@ -745,7 +745,7 @@ def no_worse(
     pairs can pull it off what the score found (18 of the 71 refinements of the shared real photos with a
     rough prior lost more than that). The score decides; a refinement that loses by the margin failed."""
     before = score_pose(image, view.segments, camera, start, config.score, view.visible)
-    if refined.score.value >= (1.0 - config.decide.margin) * before.value:
+    if before.value <= 0.0 or refined.score.value >= (1.0 - config.decide.margin) * before.value:
         return refined
     return replace(refined, cam_from_world=start, score=before)
 

@@ -235,9 +235,10 @@ def refine_from(
 
 def fit_limit(reference_px: float | None, config: SequenceConfig) -> float:
     """Returns the rms (px) a tracked fix may fit its lines with: ``max_rms_px``, or ``loose_factor`` x
-    ``reference_px`` when that is more: the rms of the last pose the global decision vetted against its rivals
-    (a relocalization; the fixes' median for the smoothed frames), None before there is one. How closely a map's lines fall on a photo's is the map's: a fused RGB-D room's lie a few
-    pixels off (the 7-Scenes kitchen's decided poses and its truths alike refine to 4.5-5 px), a
+    ``reference_px`` when that is more: the rms of the last pose the global decision vetted against its
+    rivals (a relocalization; for the smoothed frames, the median fit of the frames fixed alone), None
+    before there is one. How closely a map's lines fall on a photo's is the map's: a fused RGB-D room's lie
+    a few pixels off (the 7-Scenes kitchen's decided poses and its truths alike refine to 4.5-5 px), a
     procedural scan's within one; a fixed bar held every tracked frame of the kitchen to the scan's.
     The batch's frames (``frames_alone``) each face the rival test; the live ``Tracker`` with odometry skips
     it for speed and keeps the fixed bar: with this limit its fixes on the kitchen, refined from a track
@@ -406,7 +407,10 @@ def frames_alone(
             predicted, radius = prior.cam_from_world, prior.radius_m or config.relocalize_radius_m
         lost = k - (fix[0] if fix else -1) - 1  # frames since the last fix
         every = config.relocalize_every
-        untried = f"not searched: {lost} frames since the last fix (a loss is searched {every} frames, then every {every}th)"
+        untried = (
+            f"not searched: {lost} frames since the last fix (a loss is searched for in its first {every} "
+            f"frames, then every {every}th)"
+        )
         result = Registration(success=False, reason=untried)
         # a refinement finds the nearest basin, right only while the prediction is (the last frame's fix
         # plus one step); after frames without a fix the frame is searched for near its prediction

@@ -386,3 +386,7 @@ def test_a_refinement_that_loses_the_score_keeps_the_pose_the_score_found(rng):
     back = no_worse(start, lost, image, view, scene.camera, config)
     assert np.array_equal(back.cam_from_world, start) and back.covariance is refined.covariance
     assert back.score.value == score_pose(image, scene.lines3d, scene.camera, start, config.score).value
+    away = scene.cam_from_world.copy()  # a start explaining nothing has nothing to lose
+    away[2, 3] -= 1e4  # every map line behind the camera
+    assert score_pose(image, scene.lines3d, scene.camera, away, config.score).value <= 0
+    assert no_worse(away, lost, image, view, scene.camera, config) is lost
