@@ -744,6 +744,7 @@ def no_worse(
     of matched fragments re-associates at a tolerance wider than the score's, and on real clutter wrong
     pairs can pull it off what the score found (18 of the 71 refinements of the shared real photos with a
     rough prior lost more than that). The score decides; a refinement that loses by the margin failed."""
+    # scored as ``refine_pose`` scores its result (the search's own score may be occlusion-aware)
     before = score_pose(image, view.segments, camera, start, config.score, view.visible)
     if before.value <= 0.0 or refined.score.value >= (1.0 - config.decide.margin) * before.value:
         return refined

@@ -555,8 +555,9 @@ def smooth(
         previous = {k: f.pairs for k, f in fits.items()}
     graph, members = _graph(poses, fits, links)
     covariances_out = _marginals(graph, members, poses)
-    # how loosely this map's lines fit: the frames that fixed themselves alone, at their smoothed poses
-    fitted = [_fit_rms(fits[k], poses[k]) for k in fits if _fitted(alone[k])]
+    # each fitted frame's rms at its smoothed pose; how loosely this map's lines fit: the frames fixed alone
+    rms = {k: _fit_rms(fits[k], poses[k]) for k in fits}
+    fitted = [value for k, value in rms.items() if _fitted(alone[k])]
     limit = fit_limit(float(np.median(fitted)) if fitted else None, config)
     return [
         _result(
@@ -567,13 +568,13 @@ def smooth(
             camera,
             poses,
             covariances_out,
-            fits,
+            rms.get(k, float("nan")),
             links,
             relative is not None,
             config,
+            limit,
             accuracy_m,
             coverable,
-            limit,
         )
         for k in range(len(images))
     ]
@@ -730,17 +731,17 @@ def _result(
     camera: Camera,
     poses: dict[int, np.ndarray],
     covariances: dict[int, np.ndarray],
-    fits: dict[int, LineFit],
+    rms: float,
     links: list[_Link],
     odometry: bool,
     config: SequenceConfig,
+    max_rms_px: float,
     accuracy_m: float = 0.0,
     coverable: Callable[[ImageLines, np.ndarray], float] | None = None,
-    max_rms_px: float | None = None,
 ) -> Registration:
-    """Returns frame k's Registration at its smoothed pose: a fix of its own lines (fitting them within
-    ``max_rms_px``, None: the config's), or from neighbours; its covariance: the graph's marginal plus what
-    the map's ``accuracy_m`` adds."""
+    """Returns frame k's Registration at its smoothed pose: a fix of its own lines (its line factor's rms
+    ``rms`` px within ``max_rms_px``; NaN: the frame has none), or from neighbours; its covariance: the
+    graph's marginal plus what the map's ``accuracy_m`` adds."""
     if k not in covariances:
         return alone
     rc = config.register
@@ -751,9 +752,7 @@ def _result(
     linked = alone.success or (odometry and any(j in (k, k - 1) for j, _, _ in links))
     room = partial(coverable, image, pose) if coverable is not None else lambda: image.total_length
     enough = not explains_too_little(score.explained_length, image, room, rc.decide)
-    own = k in fits and len(matches) >= rc.min_inliers and enough
-    rms = _fit_rms(fits[k], pose) if k in fits else float("nan")
-    own = own and rms <= (config.max_rms_px if max_rms_px is None else max_rms_px)
+    own = len(matches) >= rc.min_inliers and enough and rms <= max_rms_px  # False for NaN: no line factor
     reason = ""
     if not (own and linked):
         reason = f"{FROM_NEIGHBOURS}: the frame's own lines match {len(matches)} image segments ({100 * explained:.0f} % explained)"
