@@ -368,9 +368,17 @@ class SearchConfig:
     # a map arm seen from farther than this x focal x its length / the image arm's length would look too
     # short to make the image arm (a fragment may be shorter than its map line, not many times longer)
     arm_length_ratio: float = 2.0
-    peaks: int = 16  # the fine peaks scoring best (at a tolerance spanning a fine voxel) are solved locally
+    # each fine peak is solved quickly: this many of ``solve_rounds``' rounds, the tolerance halving from
+    # one spanning its voxel and the rotation's error. One round left a crossroad photo's true peak at
+    # 0.47 m / 1.1 deg scoring 411, 92nd of 381 peaks (solved fully from there: 1688, more than any pose
+    # solved); three put it at 0.04 m scoring 812. Three measured mixed (docs/measurements.md, session 40):
+    # paper scenes with 60 % outliers 6 -> 8 of 10, the walks' smoothed frames within 1181 -> 1218 of
+    # 1280, but the demo 21 -> 20 of 30, tracking without odometry 326 -> 295 within, one more wrong claim
+    # on the walks (0.37 m / 3.1 deg along a facade's valley) and ~7 % more time
+    quick_rounds: int = 1
+    peaks: int = 16  # the fine peaks scoring best after their quick solves are solved fully
     # with a map's surfaces, the fine peaks' quick solves are scored with what they hide while what they
-    # explain unhidden (a bound) reaches this fraction of the best so far (``search.screen``)
+    # explain unhidden (nearly a bound: ``search.screen``) reaches this fraction of the best so far
     screen_fraction: float = 0.7
     # a rotation candidate from vanishing directions is off by up to about this: scoring and solving a peak
     # start at a tolerance that covers it

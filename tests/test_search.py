@@ -60,6 +60,35 @@ def test_the_local_solve_comes_back_through_clutter():
     assert back >= 20, back
 
 
+def test_more_rounds_of_a_quick_solve_come_back_where_one_round_does_not():
+    """The search's quick solve of a fine peak (``SearchConfig.quick_rounds``) ranks the peaks to solve
+    fully: from starts 1 degree and 10 % of the depth off (a fine voxel), on paper scenes with 30 %
+    outliers, three rounds come back to the truth in some (12 of 36); one round, fitting at the voxel's
+    tolerance, in none (session 40: a crossroad photo's true peak ranked 92nd after one round)."""
+    config = RegisterConfig()
+    back = {1: 0, 3: 0}
+    for seed in range(12):
+        rng = np.random.default_rng(seed)
+        scene = paper_scene(rng, 100, 0.3, 0.3, 2.0)
+        image = image_lines(scene.lines2d, scene.camera, config.score)
+        truth = scene.cam_from_world
+        depth = float(np.median(np.linalg.norm(scene.lines3d[:, :3] - camera_center(truth), axis=1)))
+        for _ in range(3):
+            axis, direction = rng.normal(size=3), rng.normal(size=3)
+            R = rotation_from_vector(np.radians(1.0) * axis / np.linalg.norm(axis)) @ truth[:3, :3]
+            centre = camera_center(truth) + 0.1 * depth * direction / np.linalg.norm(direction)
+            start = make_cam_from_world(R, -R @ centre)
+            for rounds in back:
+                quick = replace(config.search, solve_rounds=rounds)
+                out = solve_locally(
+                    image, scene.lines3d, scene.camera, start, 0.1 * depth, quick, config.score
+                )
+                if out is not None:
+                    rot_deg, _, rel = pose_errors(out[0], truth)
+                    back[rounds] += rot_deg < 0.5 and rel < 0.01
+    assert back[3] >= 8 > 2 >= back[1], back
+
+
 def _pooled_brute_force(votes: np.ndarray) -> np.ndarray:
     """The max over the 2 x 2 x 2 voxels ending at each voxel (its lower neighbours), by numpy."""
     padded = np.pad(votes, ((1, 0), (1, 0), (1, 0)), constant_values=-np.inf)
