@@ -373,8 +373,8 @@ class SearchConfig:
     # 0.47 m / 1.1 deg scoring 411, 92nd of 381 peaks (solved fully from there: 1688, more than any pose
     # solved); three put it at 0.04 m scoring 812. Three measured mixed (docs/measurements.md, session 40):
     # paper scenes with 60 % outliers 6 -> 8 of 10, the walks' smoothed frames within 1181 -> 1218 of
-    # 1280, but the demo 21 -> 20 of 30, tracking without odometry 326 -> 295 within, one more wrong claim
-    # on the walks (0.37 m / 3.1 deg along a facade's valley) and ~7 % more time
+    # 1280, but the demo 21 -> 20 of 30, one more wrong claim on the walks (0.37 m / 3.1 deg along a
+    # facade's valley) and ~7 % more time
     quick_rounds: int = 1
     peaks: int = 16  # the fine peaks scoring best after their quick solves are solved fully
     # with a map's surfaces, the fine peaks' quick solves are scored with what they hide while what they
