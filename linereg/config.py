@@ -369,12 +369,8 @@ class SearchConfig:
     # short to make the image arm (a fragment may be shorter than its map line, not many times longer)
     arm_length_ratio: float = 2.0
     # each fine peak is solved quickly: this many of ``solve_rounds``' rounds, the tolerance halving from
-    # one spanning its voxel and the rotation's error. One round left a crossroad photo's true peak at
-    # 0.47 m / 1.1 deg scoring 411, 92nd of 381 peaks (solved fully from there: 1688, more than any pose
-    # solved); three put it at 0.04 m scoring 812. Three measured mixed (docs/measurements.md, session 40):
-    # paper scenes with 60 % outliers 6 -> 8 of 10, the walks' smoothed frames within 1181 -> 1218 of
-    # 1280, but the demo 21 -> 20 of 30, one more wrong claim on the walks (0.37 m / 3.1 deg along a
-    # facade's valley) and ~7 % more time
+    # one spanning its voxel and the rotation's error. One round misranks some true peaks (a crossroad
+    # photo's: 92nd of 381); three measured mixed across the benches (docs/measurements.md, session 40)
     quick_rounds: int = 1
     peaks: int = 16  # the fine peaks scoring best after their quick solves are solved fully
     # with a map's surfaces, the fine peaks' quick solves are scored with what they hide while what they

@@ -72,7 +72,7 @@ def test_more_rounds_of_a_quick_solve_come_back_where_one_round_does_not():
         scene = paper_scene(rng, 100, 0.3, 0.3, 2.0)
         image = image_lines(scene.lines2d, scene.camera, config.score)
         truth = scene.cam_from_world
-        depth = float(np.median(np.linalg.norm(scene.lines3d[:, :3] - camera_center(truth), axis=1)))
+        depth = float(np.median(transform_depths(scene.lines3d, truth)))
         for _ in range(3):
             axis, direction = rng.normal(size=3), rng.normal(size=3)
             R = rotation_from_vector(np.radians(1.0) * axis / np.linalg.norm(axis)) @ truth[:3, :3]
