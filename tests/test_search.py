@@ -185,11 +185,12 @@ def test_the_fine_grids_get_the_votes_of_one_grid_each(rng):
     expected = []
     for b, centre in enumerate(centres):
         lo, hi = centre - half, centre + half
-        grid = _Grid(lo, hi, float(np.max(hi - lo)) / side, np.full(3, side, dtype=np.int64))
-        grid.vote(rays, positions, weight, 0.7)
+        voxel = float(np.max(hi - lo)) / side
+        grid = _Grid(side**3)
+        grid.vote((lo, hi, voxel, np.full(3, side, dtype=np.int64)), rays, positions, weight, 0.7)
         np.testing.assert_array_equal(fine.accumulator[b], grid.accumulator)
-        best, votes = _peaks(grid.votes, grid.lo, grid.voxel, 1, grid.voted)
-        expected += [(c, float(v), grid.voxel) for c, v in zip(best, votes, strict=True)]
+        best, votes = _peaks(grid.votes, lo, voxel, 1, grid.voted)
+        expected += [(c, float(v), voxel) for c, v in zip(best, votes, strict=True)]
     assert len(peaks) == len(expected) > 0
     for (c, v, size), (ce, ve, se) in zip(peaks, expected, strict=True):
         assert np.array_equal(c, ce) and v == ve and size == se
@@ -239,8 +240,9 @@ def test_rays_through_one_map_point_make_no_peak_at_it(rng):
     m = np.r_[np.zeros(40, np.int64), np.arange(1, 11)]
     rays = (k, m, np.full(50, 10.0), directions)
     lo, hi = np.full(3, -3.0), np.full(3, 3.0)
-    grid = _Grid(lo, hi, 0.1, np.full(3, 60, dtype=np.int64))
-    grid.vote(rays, positions, np.ones(50), 0.5)
+    box = (lo, hi, 0.1, np.full(3, 60, dtype=np.int64))
+    grid = _Grid(60**3)
+    grid.vote(box, rays, positions, np.ones(50), 0.5)
     votes = grid.votes
     assert votes.max() == 10.0
     at = tuple(((centre - lo) / 0.1).astype(int))
@@ -248,29 +250,44 @@ def test_rays_through_one_map_point_make_no_peak_at_it(rng):
     cells = lo + (np.indices(votes.shape).reshape(3, -1).T + 0.5) * 0.1
     near = np.linalg.norm(cells - positions[0], axis=1) < 0.5 - 0.1
     assert votes.reshape(-1)[near].max() == 0.0
-    grid.vote(rays, positions, np.ones(50), 0.0)  # without the near limit: still one vote per map point
+    grid.vote(box, rays, positions, np.ones(50), 0.0)  # without the near limit: still one vote per map point
     assert grid.votes.max() == 10.0
 
 
 def test_a_grid_lists_each_voxel_with_votes_once_pass_after_pass(rng):
     """``_Grid.voted`` (what clearing and the peaks read instead of the whole grid) is exactly the voxels
     with votes, each once, after every pass; a pass's votes are cleared before the next, and stamps of one
-    pass never hide votes of the next."""
+    pass never hide votes of the next: a grid voting box after box, of other shapes, kept between searches
+    or with its ids about to wrap, gives each box the votes of a fresh grid."""
     positions = rng.uniform(-2.0, 2.0, (60, 3))
-    lo, hi = np.full(3, -3.0), np.full(3, 3.0)
-    grid = _Grid(lo, hi, 0.15, np.full(3, 40, dtype=np.int64))
-    for n in (300, 20, 0, 500):
+    boxes = [
+        (np.full(3, -3.0), np.full(3, 3.0), 0.15, np.full(3, 40, dtype=np.int64)),
+        (
+            np.array([-2.0, -3.0, -1.0]),
+            np.array([3.0, 1.0, 2.0]),
+            0.2,
+            np.array([25, 20, 15], dtype=np.int64),
+        ),
+    ]
+    grid = _Grid(40**3)
+    for n in (300, 20, 0, 500, 400, 250):
         directions = rng.normal(size=(30, 3))
         directions /= np.linalg.norm(directions, axis=1, keepdims=True)
         rays = (np.sort(rng.integers(0, 30, n)), rng.integers(0, 60, n), rng.uniform(0.5, 6.0, n), directions)
         weight = rng.choice([0.0, 1.0, 2.5], 30)
-        grid.vote(rays, positions, weight, 0.2)
-        voted = grid.voted
-        assert len(np.unique(voted)) == len(voted)
-        np.testing.assert_array_equal(np.sort(voted), np.flatnonzero(grid.accumulator))
-        fresh = _Grid(lo, hi, 0.15, np.full(3, 40, dtype=np.int64))
-        fresh.vote(rays, positions, weight, 0.2)
-        np.testing.assert_array_equal(grid.accumulator, fresh.accumulator)
+        if n == 400:  # a grid kept from an earlier search
+            grid.give_back()
+            grid = _Grid.take(40**3)
+        if n == 250:
+            grid.next_id = grid.next_map_id = np.iinfo(np.int32).max - 40
+        for box in boxes:
+            grid.vote(box, rays, positions, weight, 0.2)
+            voted = grid.voted
+            assert len(np.unique(voted)) == len(voted)
+            np.testing.assert_array_equal(np.sort(voted), np.flatnonzero(grid.accumulator))
+            fresh = _Grid(int(np.prod(box[3])))
+            fresh.vote(box, rays, positions, weight, 0.2)
+            np.testing.assert_array_equal(grid.votes, fresh.votes)
 
 
 def test_a_views_points_are_the_maps_own_restricted_to_it():
