@@ -148,6 +148,15 @@ def _compatible(
     return k, order[start + np.arange(len(k))]
 
 
+def _first_of_each(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((U,) the distinct values sorted, (U,) the index of each one's first occurrence) of (P,)
+    int64 ``values``: ``np.unique(values, return_index=True)``, without its stable sort (4x slower)."""
+    order = np.argsort(values)
+    ordered = values[order]
+    start = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
+    return ordered[start], np.minimum.reduceat(order, start)
+
+
 def _agreements(
     centres: np.ndarray,
     k: np.ndarray,
@@ -177,9 +186,11 @@ def _agreements(
     if len(kept) == 0:
         return []
     n = int(k.max()) + 1
-    once, first = np.unique(cells[kept] * n + np.repeat(k, 8)[kept], return_index=True)  # once per voxel
+    once, first = _first_of_each(cells[kept] * n + np.repeat(k, 8)[kept])  # once per voxel
     first = kept[first]
-    ids, inverse = np.unique(once // n, return_inverse=True)
+    voxel_of = once // n  # sorted, as ``once`` is
+    new = np.r_[True, voxel_of[1:] != voxel_of[:-1]]
+    ids, inverse = voxel_of[new], np.cumsum(new) - 1
     votes = np.bincount(inverse, weights=weight[once % n], minlength=len(ids))
     pair = first // 8  # the pair (row of ``centres``) behind each (voxel, point) vote
     ranked = np.argsort(-votes, kind="stable")

@@ -138,3 +138,17 @@ def test_agreements_count_exactly_what_reaches_the_share():
                 np.testing.assert_array_equal(c, c_all)
                 assert s == s_all
     assert any(s >= 0.2 for _, s in every)  # the clumps hold copies the bound must keep
+
+
+def test_first_of_each_is_numpys_unique_with_first_indices():
+    """``copies._first_of_each`` (the agreements' once-per-voxel count) gives what ``np.unique(...,
+    return_index=True)`` gives: the distinct values sorted, each with the index of its first occurrence."""
+    from linereg.copies import _first_of_each
+
+    rng = np.random.default_rng(7)
+    for size, high in ((1, 5), (50, 3), (5000, 400), (20000, 10**12)):
+        values = rng.integers(0, high, size, dtype=np.int64)
+        distinct, first = _first_of_each(values)
+        expected, expected_first = np.unique(values, return_index=True)
+        np.testing.assert_array_equal(distinct, expected)
+        np.testing.assert_array_equal(first, expected_first)
