@@ -150,7 +150,8 @@ def _compatible(
 
 def _first_of_each(values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((U,) the distinct values sorted, (U,) the index of each one's first occurrence) of (P,)
-    int64 ``values``: ``np.unique(values, return_index=True)``, without its stable sort (4x slower)."""
+    int64 ``values``: what ``np.unique(values, return_index=True)`` returns, in a quarter of its time (an
+    unstable sort, each run's smallest index, where it sorts stably)."""
     order = np.argsort(values)
     ordered = values[order]
     start = np.flatnonzero(np.r_[True, ordered[1:] != ordered[:-1]])
