@@ -326,3 +326,19 @@ def test_the_surface_footprint_is_where_a_cells_ray_meets_a_surface(line_map):
     # rays grazing a rectangle's edge may fall either way (float32 in the ray caster)
     assert (got != expected).mean() < 0.01
     assert LineMap.from_segments(lm.segments).surface_footprint(CAMERA, cam, cell) is None
+
+
+def test_the_pyramid_test_leaves_out_only_segments_the_exact_clipping_leaves_out(rng):
+    """``visibility._in_pyramid`` (the cheap first cut of ``visible_parts``) drops a segment only where
+    the exact clipping to the near plane and the image finds no part of it in view, for random segments
+    all round the camera (in front, behind, across the near plane), near and far."""
+    from linereg.map.visibility import _clip_image, _clip_near, _in_pyramid
+
+    near = 0.05
+    for scale in (0.5, 5.0, 50.0):
+        a, b = rng.normal(0.0, scale, (20000, 3)), rng.normal(0.0, scale, (20000, 3))
+        kept = _in_pyramid(a, b, CAMERA, near)
+        t0, t1, ok = _clip_near(a[:, 2], b[:, 2], near)
+        _, _, ok = _clip_image(a, b, t0, t1, ok, CAMERA)
+        assert not (ok & ~kept).any()
+        assert (~kept).sum() > 0.3 * len(a)  # it does cut: most random segments miss the view

@@ -57,8 +57,12 @@ class Visibility:
         rows = np.arange(len(self.segments)) if index is None else np.asarray(index, dtype=np.int64)
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
         R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+        # a segment wholly outside one face of the view's pyramid (widened by a pixel) is left out before
+        # the exact clipping below, which would leave it out too: on a large map most of them are
         seg = self.segments[rows]
         a, b = seg[:, :3] @ R.T + t, seg[:, 3:] @ R.T + t
+        near = _in_pyramid(a, b, camera, cfg.min_depth_m)
+        rows, a, b = rows[near], a[near], b[near]
         t0, t1, ok = _clip_near(a[:, 2], b[:, 2], cfg.min_depth_m)
         t0, t1, ok = _clip_image(a, b, t0, t1, ok, camera)
         rows, a, b, t0, t1 = rows[ok], a[ok], b[ok], t0[ok], t1[ok]
@@ -218,6 +222,23 @@ class Visibility:
 def _pixel(camera: Camera, x: np.ndarray) -> np.ndarray:
     """Returns (N, 2) pixels of (N, 3) camera-frame points in front of the camera."""
     return np.c_[camera.fx * x[:, 0] / x[:, 2] + camera.cx, camera.fy * x[:, 1] / x[:, 2] + camera.cy]
+
+
+def _in_pyramid(a: np.ndarray, b: np.ndarray, camera: Camera, near: float) -> np.ndarray:
+    """Returns (N,) bool: False where both camera-frame ends of a segment, (N, 3) ``a`` and ``b``, lie
+    nearer than ``near`` or both outside one side face of the pyramid through the camera centre and the
+    image border widened by a pixel (the exact clipping's border lies half a pixel out): the outside of a
+    face is convex, so the whole segment lies there and no part of it can project into the image."""
+    inward = np.array(
+        [
+            [1.0, 0.0, (camera.cx + 1.5) / camera.fx],  # u >= -1.5
+            [-1.0, 0.0, (camera.width + 0.5 - camera.cx) / camera.fx],  # u <= width + 0.5
+            [0.0, 1.0, (camera.cy + 1.5) / camera.fy],  # v >= -1.5
+            [0.0, -1.0, (camera.height + 0.5 - camera.cy) / camera.fy],  # v <= height + 0.5
+        ]
+    ).T
+    outside = ((a @ inward) < 0.0) & ((b @ inward) < 0.0)
+    return ~(outside.any(axis=1) | ((a[:, 2] < near) & (b[:, 2] < near)))
 
 
 def _clip_near(za: np.ndarray, zb: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
