@@ -57,10 +57,10 @@ class Visibility:
         rows = np.arange(len(self.segments)) if index is None else np.asarray(index, dtype=np.int64)
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
         R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
-        # a segment wholly outside one face of the view's pyramid (widened by a pixel) is left out before
-        # the exact clipping below, which would leave it out too: on a large map most of them are
         seg = self.segments[rows]
         a, b = seg[:, :3] @ R.T + t, seg[:, 3:] @ R.T + t
+        # a segment wholly outside one face of the view's pyramid (widened by a pixel) is left out before
+        # the exact clipping below, which would leave it out too: on a large map most of them are
         near = _in_pyramid(a, b, camera, cfg.min_depth_m)
         rows, a, b = rows[near], a[near], b[near]
         t0, t1, ok = _clip_near(a[:, 2], b[:, 2], cfg.min_depth_m)
