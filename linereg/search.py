@@ -702,18 +702,36 @@ def _peaks(
     top, values = _top_pooled(np.ascontiguousarray(votes), voted, 64 * count)
     order = np.lexsort((top, -values))  # most votes first, ties in voxel order
     top, values = top[order], values[order]
-    cells = np.stack(np.unravel_index(top[values > 0], votes.shape), axis=1)
-    kept: list[np.ndarray] = []
-    for cell in cells:  # plateaus of equal maxima: keep one per neighbourhood
-        if all(np.abs(cell - k).max() >= 3 for k in kept):
-            kept.append(cell)
-            if len(kept) == count:
+    positive = values > 0
+    cells = np.stack(np.unravel_index(top[positive], votes.shape), axis=1).astype(np.int64)
+    kept = _apart(cells, count, 3)  # plateaus of equal maxima: one per neighbourhood
+    return lo + (cells[kept] + 0.5) * voxel, values[positive][kept].astype(np.float64)
+
+
+@numba.njit(cache=True, nogil=True)
+def _apart(cells: np.ndarray, count: int, gap: int) -> np.ndarray:  # pragma: no cover - numba
+    """Returns the indices of the (K, 3) int ``cells`` kept in order, each kept when it lies ``gap`` or more
+    (in some axis) from every cell kept before it, until ``count`` are kept (``count`` <= 0: no limit)."""
+    limit = count if count > 0 else len(cells)
+    kept = np.empty(min(limit, len(cells)), np.int64)
+    n = 0
+    for i in range(len(cells)):
+        if n == limit:
+            break
+        near = False
+        for j in range(n):
+            k = kept[j]
+            if (
+                abs(cells[i, 0] - cells[k, 0]) < gap
+                and abs(cells[i, 1] - cells[k, 1]) < gap
+                and abs(cells[i, 2] - cells[k, 2]) < gap
+            ):
+                near = True
                 break
-    kept_cells = np.array(kept, dtype=np.int64).reshape(-1, 3)
-    centres = lo + (kept_cells + 0.5) * voxel
-    pooled = {int(t): float(v) for t, v in zip(top, values, strict=True)}
-    flat = [int(np.ravel_multi_index(tuple(cell), votes.shape)) for cell in kept_cells]
-    return centres, np.array([pooled[f] for f in flat])
+        if not near:
+            kept[n] = i
+            n += 1
+    return kept[:n]
 
 
 @numba.njit(cache=True, nogil=True)

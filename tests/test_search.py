@@ -331,3 +331,33 @@ def test_a_solve_from_near_the_truth_of_exact_lines_ends_on_it(rng):
     assert out is not None
     rot_deg, pos_m, _ = pose_errors(out[0], truth)
     assert rot_deg < 1e-4 and pos_m < 1e-5 * depth
+
+
+def test_peaks_keep_the_best_pooled_voxels_three_apart_ties_in_voxel_order(rng):
+    """``_peaks`` against a plain reference: votes pooled over each voxel's 2 x 2 x 2 block ending at it,
+    the best first (ties: lower voxel index first), a voxel kept when it lies 3 or more voxels from every
+    voxel kept before it in some axis; plateaus of equal votes (integers) keep one voxel per neighbourhood."""
+    shape = (9, 8, 7)
+    for trial in range(30):
+        votes = np.zeros(shape)
+        hot = rng.choice(votes.size, 40, replace=False)
+        votes.reshape(-1)[hot] = rng.integers(1, 4, 40)  # few distinct values: many ties and plateaus
+        lo, voxel, count = np.array([1.0, -2.0, 0.5]), 0.25, int(rng.integers(1, 9))
+        centres, values = _peaks(votes, lo, voxel, count, np.flatnonzero(votes))
+        pooled = np.zeros(shape)
+        for x, y, z in np.ndindex(shape):
+            pooled[x, y, z] = votes[max(x - 1, 0) : x + 1, max(y - 1, 0) : y + 1, max(z - 1, 0) : z + 1].max()
+        order = sorted(
+            (i for i in range(pooled.size) if pooled.reshape(-1)[i] > 0),
+            key=lambda i: (-pooled.reshape(-1)[i], i),
+        )
+        kept: list[np.ndarray] = []
+        for i in order[: 64 * count]:
+            cell = np.array(np.unravel_index(i, shape))
+            if all(np.abs(cell - k).max() >= 3 for k in kept):
+                kept.append(cell)
+            if len(kept) == count:
+                break
+        expected = np.array(kept).reshape(-1, 3)
+        np.testing.assert_array_equal(centres, lo + (expected + 0.5) * voxel, err_msg=f"trial {trial}")
+        np.testing.assert_array_equal(values, [pooled[tuple(c)] for c in expected])
