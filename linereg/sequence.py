@@ -392,7 +392,8 @@ def frames_alone(
     prior: Prior | None = None,
 ) -> list[Registration]:
     """Returns each frame's own Registration: tracked from its prediction, else relocalized near it, else
-    global (step 1 of the module docstring). With odometry, a fix lying farther from the odometry's
+    global (step 1 of the module docstring); a start pose given in ``prior`` that frame 0's own lines do not
+    fix stands in for its fix, known to the prior's bounds. With odometry, a fix lying farther from the odometry's
     prediction than ``gate_probability`` allows (the tracker's innovation gate, on the last fix's covariance
     carried along the odometry) is not claimed: ``success=False``, its pose kept (``gated``)."""
     out: list[Registration] = []
@@ -441,12 +442,36 @@ def frames_alone(
         out.append(result)
         if result.success or result.reason.startswith(GATED):  # the next frame's prediction starts here
             fix, drift, carried = (k, base), 0.0, covariance
+        elif k == 0 and prior is not None and prior.cam_from_world is not None:
+            # a given start pose that frame 0's own lines did not fix (a blank wall, a rival as good): the
+            # next frames are predicted from it, as from a fix known to the prior's bounds, not searched
+            # for in the whole map
+            fix, drift, carried = (
+                (0, prior.cam_from_world),
+                _prior_reach(prior, config),
+                _prior_covariance(prior, config),
+            )
         elif relative is not None and covariances is not None:
             if k < len(relative):
                 drift += 3.0 * float(np.sqrt(np.trace(covariances[k][3:, 3:])))
             if carried is not None:  # the last fix's covariance carried on to this frame
                 carried = carry(carried, relative[k - 1], covariances[k - 1])
     return out
+
+
+def _prior_reach(prior: Prior, config: SequenceConfig) -> float:
+    """Returns how far (m, about 3 sigma) a start pose given as a Prior may lie from the truth."""
+    return prior.radius_m if prior.radius_m is not None else config.relocalize_radius_m
+
+
+def _prior_covariance(prior: Prior, config: SequenceConfig) -> np.ndarray:
+    """Returns the (6, 6) covariance (rotation rad, translation m) of a start pose given as a Prior: its
+    ``sigma_rot_deg`` and a third of its reach (``_prior_reach``) per axis."""
+    rot = np.radians(
+        prior.sigma_rot_deg if prior.sigma_rot_deg is not None else config.relocalize_sigma_rot_deg
+    )
+    pos = _prior_reach(prior, config) / 3.0
+    return np.diag([rot**2] * 3 + [pos**2] * 3)
 
 
 def gated(

@@ -388,3 +388,24 @@ def test_tracker_does_not_claim_a_track_whose_fixes_keep_landing_off_its_predict
         claims[window] = [r.success for r in results]
     assert all(claims[0])
     assert all(claims[5][:3]) and not any(claims[5][6:])
+
+
+def test_a_given_start_pose_carries_the_frames_after_a_start_frame_without_lines(scene):
+    """Frame 0 shows nothing (a blank wall) but its pose is given (``prior``): frame 1 is refined from that
+    pose moved by the odometry ("track"), not searched for in the whole map, and frame 0 is posed by its
+    neighbours."""
+    line_map, truth, frames = scene
+    relative, covariances = _odometry(truth)
+    blank_first = [BLANK, *frames[1:]]
+    config = SequenceConfig()
+    first = Prior(cam_from_world=truth[0], radius_m=0.3, sigma_rot_deg=2.0)
+    images = [image_lines(f, CAMERA, config.register.score) for f in blank_first]
+    alone = frames_alone(blank_first, images, line_map, CAMERA, relative, covariances, config, first)
+    assert not alone[0].success
+    assert "track" in alone[1].timings and "relocalize" not in alone[1].timings
+    assert all(r.success for r in alone[1:]), [r.reason for r in alone]
+    results = localize_sequence(blank_first, line_map, CAMERA, relative, covariances, config, first)
+    assert results[0].reason.startswith(FROM_NEIGHBOURS)
+    for r, T in zip(results, truth, strict=True):
+        rot, pos, _ = pose_errors(r.cam_from_world, T)
+        assert pos < 0.01 and rot < 0.2
