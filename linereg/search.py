@@ -705,7 +705,7 @@ def _peaks(
     positive = values > 0
     cells = np.stack(np.unravel_index(top[positive], votes.shape), axis=1).astype(np.int64)
     kept = _apart(cells, count, 3)  # plateaus of equal maxima: one per neighbourhood
-    return lo + (cells[kept] + 0.5) * voxel, values[positive][kept].astype(np.float64)
+    return lo + (cells[kept] + 0.5) * voxel, values[positive][kept]
 
 
 @numba.njit(cache=True, nogil=True)

@@ -133,7 +133,8 @@ def localize_sequence(
     relative_poses: K - 1 (4, 4) measured ``cam_k_from_cam_k+1``; relative_covariances: their (6, 6)
     covariances (gtsam tangent of the relative pose: rotation rad, translation m, in camera k+1), default
     from ``config.odometry_*``. prior: what is known of the first frame's pose (a given start pose is
-    ``Prior(cam_from_world=...)``: frame 0 is refined from it). Bad input raises InvalidInputError.
+    ``Prior(cam_from_world=...)``: frame 0 is refined from it, and when frame 0's own lines do not fix it
+    the next frames are predicted from it). Bad input raises InvalidInputError.
     """
     config = config or SequenceConfig()
     lines = [_lines(f, camera, config, k) for k, f in enumerate(frames)]
