@@ -443,36 +443,19 @@ def frames_alone(
         out.append(result)
         if result.success or result.reason.startswith(GATED):  # the next frame's prediction starts here
             fix, drift, carried = (k, base), 0.0, covariance
-        elif k == 0 and prior is not None and prior.cam_from_world is not None:
-            # a given start pose that frame 0's own lines did not fix (a blank wall, a rival as good): the
-            # next frames are predicted from it, as from a fix known to the prior's bounds, not searched
-            # for in the whole map
-            fix, drift, carried = (
-                (0, prior.cam_from_world),
-                _prior_reach(prior, config),
-                _prior_covariance(prior, config),
-            )
+        elif k == 0 and predicted is not None and prior is not None:
+            # a given start pose (the only prediction frame 0 has) that its own lines did not fix (a blank
+            # wall, a rival as good): the next frames are predicted from it, as from a fix known to within
+            # the prior's radius (3 sigma) and rotation sigma, not searched for in the whole map
+            rot = np.radians(prior.sigma_rot_deg or config.relocalize_sigma_rot_deg)
+            fix, drift = (0, predicted), radius
+            carried = np.diag([rot**2] * 3 + [(radius / 3.0) ** 2] * 3)
         elif relative is not None and covariances is not None:
             if k < len(relative):
                 drift += 3.0 * float(np.sqrt(np.trace(covariances[k][3:, 3:])))
             if carried is not None:  # the last fix's covariance carried on to this frame
                 carried = carry(carried, relative[k - 1], covariances[k - 1])
     return out
-
-
-def _prior_reach(prior: Prior, config: SequenceConfig) -> float:
-    """Returns how far (m, about 3 sigma) a start pose given as a Prior may lie from the truth."""
-    return prior.radius_m if prior.radius_m is not None else config.relocalize_radius_m
-
-
-def _prior_covariance(prior: Prior, config: SequenceConfig) -> np.ndarray:
-    """Returns the (6, 6) covariance (rotation rad, translation m) of a start pose given as a Prior: its
-    ``sigma_rot_deg`` and a third of its reach (``_prior_reach``) per axis."""
-    rot = np.radians(
-        prior.sigma_rot_deg if prior.sigma_rot_deg is not None else config.relocalize_sigma_rot_deg
-    )
-    pos = _prior_reach(prior, config) / 3.0
-    return np.diag([rot**2] * 3 + [pos**2] * 3)
 
 
 def gated(
