@@ -21,7 +21,7 @@ from .errors import InvalidInputError
 from .geometry import invert, line_coefficients
 from .line_factor import LineProjection, line_factor
 from .lines2d import detect
-from .refine import fragments, residual_variance
+from .refine import fragments, residual_variance, robust_noise
 from .registration import check_segments
 from .score import ImageLines, score_pose
 
@@ -146,12 +146,7 @@ def line_fit(
         return None
     coeffs = line_coefficients(image.segments[pairs[:, 0]])
     projection = LineProjection.build(coeffs, points, camera, config.refine.min_depth_m)
-    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2 * len(pairs), sigma_px)
-    if config.refine.kernel == "huber":  # the whitened threshold: kernel_px stays in pixels
-        kernel = gtsam.noiseModel.mEstimator.Huber.Create(
-            config.refine.kernel_px / sigma_px, gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar
-        )
-        noise = gtsam.noiseModel.Robust.Create(kernel, noise)
+    noise = robust_noise(2 * len(pairs), sigma_px, config.refine)
     return LineFit(pairs, projection, line_factor(key, projection, noise))
 
 

@@ -193,16 +193,23 @@ def _problem(
     if _degenerate(points, config):
         return None
     projection = LineProjection.build(coeffs[pairs[:, 0]], points, camera, config.min_depth_m)
-    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(2 * len(pairs), 1.0)  # kernel_px is px
-    if config.kernel != "none":
-        # Scalar: each point residual gets its own weight (and loss); Block would weight the whole image
-        kernel = _KERNELS[config.kernel](
-            config.kernel_px, gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar
-        )
-        noise = gtsam.noiseModel.Robust.Create(kernel, noise)
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(line_factor(POSE_KEY, projection, noise))
+    graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(pairs), 1.0, config)))
     return _Problem(graph, projection)
+
+
+def robust_noise(dim: int, sigma_px: float, config: RefineConfig) -> gtsam.noiseModel.Base:
+    """Returns the noise model of ``dim`` point-to-line residuals of ``sigma_px`` under the configured robust
+    kernel, its threshold ``kernel_px`` in pixels whatever the sigma (gtsam applies the kernel to whitened
+    residuals). Scalar reweighting: each point residual gets its own weight (and loss); Block would weight
+    the whole image as one."""
+    noise: gtsam.noiseModel.Base = gtsam.noiseModel.Isotropic.Sigma(dim, sigma_px)
+    if config.kernel == "none":
+        return noise
+    kernel = _KERNELS[config.kernel](
+        config.kernel_px / sigma_px, gtsam.noiseModel.mEstimator.Base.ReweightScheme.Scalar
+    )
+    return gtsam.noiseModel.Robust.Create(kernel, noise)
 
 
 def _values(cam_from_world: np.ndarray) -> gtsam.Values:

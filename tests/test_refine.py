@@ -10,7 +10,7 @@ from linereg.config import RefineConfig, ScoreConfig
 from linereg.errors import InvalidInputError
 from linereg.geometry import camera_center, invert, line_coefficients, pose_errors, transform_points
 from linereg.line_factor import LineProjection, line_factor, line_residuals
-from linereg.refine import Refinement, _one_per_stretch, refine_pose
+from linereg.refine import Refinement, _one_per_stretch, refine_pose, robust_noise
 from linereg.score import image_lines
 from linereg.sim.synthetic import paper_scene
 
@@ -248,6 +248,19 @@ def test_other_kernels_recover_the_pose(kernel):
     result = refine(scene, start, RefineConfig(kernel=kernel, kernel_px=5.0))
     rot_deg, _, rel = pose_errors(result.cam_from_world, scene.cam_from_world)
     assert rot_deg < 0.05 and rel < 1e-3 and np.isfinite(result.covariance).all()
+
+
+@pytest.mark.parametrize("kernel", ["huber", "cauchy", "tukey"])
+def test_a_kernel_weighs_a_residual_by_its_pixels_whatever_the_noise_level(kernel):
+    # the sequence graph's line factors carry each frame's own noise level; the kernel's threshold stays in
+    # pixels, as in the single-image refinement (sigma 1 px): the same residual gets the same weight
+    config = RefineConfig(kernel=kernel, kernel_px=3.0)
+    for residual_px in (1.0, 2.0, 4.0):
+        weights = [robust_noise(2, s, config).robust().weight(residual_px / s) for s in (0.5, 1.0, 2.0)]
+        assert weights == pytest.approx([weights[1]] * 3, rel=1e-9)
+    tukey = RefineConfig(kernel="tukey", kernel_px=3.0)
+    assert robust_noise(2, 2.0, tukey).robust().weight(4.0 / 2.0) == 0.0  # beyond 3 px: no pull at all
+    assert isinstance(robust_noise(2, 2.0, RefineConfig(kernel="none")), gtsam.noiseModel.Isotropic)
 
 
 def test_unknown_kernel_is_rejected():
