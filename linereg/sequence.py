@@ -6,7 +6,7 @@
    loss without odometry. With odometry a fix must also lie near the odometry's prediction (``gated``,
    the tracker's innovation gate); a gated fix is not claimed but still starts the graph at its pose.
 2. One graph over all frames: a line-projection factor per frame on its matched fragments (the
-   refinement's vectorised factor, Huber kernel in pixels, noise = the frame's own residual level), a
+   refinement's vectorised factor and robust kernel in pixels, noise = the frame's own residual level), a
    ``BetweenFactorPose3`` per odometry step with its covariance, and, only when asked
    (``smoothness``), a random-walk prior between consecutive frames. It starts each fixed frame at its
    fix and each frame between fixes where the pose graph of the fixes and the odometry puts it (the
