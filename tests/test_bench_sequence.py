@@ -43,3 +43,40 @@ def test_the_same_seed_twice_is_refused(tmp_path):
     args = parser.parse_args(["--scene", "synthetic", "--seeds", "3", "3", "--out", str(tmp_path / "out")])
     with pytest.raises(InvalidInputError, match="--seeds"):
         sequence.run(args)
+
+
+def test_the_at_truth_row_is_what_each_frames_lines_allow_from_its_ground_truth():
+    """A frame rendered 3 degrees off its ground truth (a colour camera not registered to the pose) is
+    refined to where its lines put it, outside ``--good-rot-deg`` for every row; a blank frame is not posed."""
+    import numpy as np
+
+    from linereg.camera import Camera
+    from linereg.geometry import rotation_from_vector
+    from linereg.map.linemap import LineMap
+    from linereg.score import image_lines
+    from linereg.sequence import SequenceConfig
+    from linereg.sim.synthetic import look_at, project_visible
+
+    camera = Camera(fx=800.0, fy=800.0, cx=320.0, cy=240.0, width=640, height=480)
+    rng = np.random.default_rng(0)
+    directions = np.r_[np.tile(np.eye(3), (12, 1)), rng.normal(size=(8, 3))]
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    starts = rng.uniform(-1.5, 1.5, (len(directions), 3))
+    lines3d = np.c_[starts, starts + rng.uniform(0.4, 1.2, (len(directions), 1)) * directions]
+    angles = np.radians(2.0) * np.arange(3)
+    truth = np.array([look_at(np.array([4 * np.cos(a), 4 * np.sin(a), 0.8]), np.zeros(3)) for a in angles])
+    seen = truth.copy()
+    seen[1, :3, :3] = rotation_from_vector(np.radians([0.0, 3.0, 0.0])) @ truth[1, :3, :3]
+    seen[1, :3, 3] = rotation_from_vector(np.radians([0.0, 3.0, 0.0])) @ truth[1, :3, 3]  # turned in place
+    config = SequenceConfig()
+    frames = [project_visible(lines3d, camera, T)[0] for T in seen]
+    frames[2] = np.zeros((0, 4))
+    images = [image_lines(f, camera, config.register.score) for f in frames]
+    parser = argparse.ArgumentParser()
+    sequence.configure(parser)
+    args = parser.parse_args([])
+    row = sequence._at_truth(images, LineMap.from_segments(lines3d), camera, truth, config, args)
+    assert row["posed_mask"].tolist() == [True, True, False]
+    assert row["within"] == pytest.approx(1 / 3)  # frame 0 of the three
+    assert np.allclose(row["poses"][0], truth[0], atol=1e-6)
+    assert np.allclose(row["poses"][1], seen[1], atol=1e-4)  # where its lines are, not its ground truth
