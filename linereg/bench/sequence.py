@@ -13,7 +13,8 @@ refined from its prediction or relocalized near it; ``localize_sequence``'s firs
 graph), ``tracking`` (``Tracker.step`` with odometry), ``tracking-cv`` (no odometry: constant velocity,
 relocalization), ``tracking-reach`` (tracking-cv knowing the camera's top speed, ``--max-speed``: after a
 long loss it relocalizes within reach of its last fix), and ``at-truth``, not a method: each frame refined
-alone from its ground truth, the ceiling of every row where the map and the ground truth disagree. ATE / RPE are evo's APE / RPE
+alone from its ground truth, what a frame's own lines allow (a graph pooling frames and odometry can do
+better). ATE / RPE are evo's APE / RPE
 (translation part, RMSE, no alignment, delta 1 frame) over the frames each row poses; ``posed`` counts frames with a pose (success, or from neighbours); ``wrong``
 counts frames claiming success farther than ``--max-pos-m`` / ``--max-rot-deg`` from the truth; ``within``
 is the share of ALL frames posed within ``--good-pos-m`` / ``--good-rot-deg``. With ``--global-every N``
@@ -263,15 +264,16 @@ def _at_truth(
     images: list, line_map: Any, camera: Any, truth: np.ndarray, config: Any, args: argparse.Namespace
 ) -> dict[str, Any]:
     """Returns the row of every frame refined alone from its ground truth (``refine_from``): not a method
-    but the ceiling of the others. Where the map's lines and the ground truth disagree (a map off by
+    but what a frame's own lines allow. Where the map's lines and the ground truth disagree (a map off by
     centimetres, a colour camera not registered to the depth camera that posed it), the refinement moves
-    off the truth, and a frame no method can place within ``--good-*`` of it counts against every row.
-    A frame whose lines fix no pose (a blank wall, the sky: the refinement leaves the truth untouched) is
-    not posed; ``success`` is the tracker's fix test at the truth."""
+    off the truth, and the share it leaves within ``--good-*`` is about what a row placing each frame by its
+    own lines can reach (a graph pooling frames and odometry can do better). A frame whose lines fix no pose (a blank wall,
+    the sky: the refinement leaves the truth untouched) is not posed; ``success`` is the tracker's fix test
+    at the truth, with its own radius (``wrong``: frames whose own lines would make it claim a wrong fix)."""
     from ..sequence import refine_from
 
     results = [
-        refine_from(image, line_map, camera, T, args.max_pos_m, config)
+        refine_from(image, line_map, camera, T, config.relocalize_radius_m, config)
         for image, T in zip(images, truth, strict=True)
     ]
     poses = np.array([r.cam_from_world for r in results])
