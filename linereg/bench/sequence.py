@@ -266,10 +266,11 @@ def _at_truth(
     """Returns the row of every frame refined alone from its ground truth (``refine_from``): not a method
     but what a frame's own lines allow. Where the map's lines and the ground truth disagree (a map off by
     centimetres, a colour camera not registered to the depth camera that posed it), the refinement moves
-    off the truth, and the share it leaves within ``--good-*`` is about what a row placing each frame by its
-    own lines can reach (a graph pooling frames and odometry can do better). A frame whose lines fix no pose (a blank wall,
-    the sky: the refinement leaves the truth untouched) is not posed; ``success`` is the tracker's fix test
-    at the truth, with its own radius (``wrong``: frames whose own lines would make it claim a wrong fix)."""
+    off the truth, and the share it leaves within ``--good-*`` is about what a row placing each frame by
+    its own lines can reach (a graph pooling frames and odometry can do better). A frame whose lines fix
+    no pose (a blank wall, the sky: the refinement leaves the truth untouched) is not posed; ``success``
+    is the tracker's fix test at the truth, with its own radius (``wrong``: the frames whose own lines
+    would make it claim a wrong fix)."""
     from ..sequence import refine_from
 
     results = [
