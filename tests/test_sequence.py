@@ -409,3 +409,35 @@ def test_a_given_start_pose_carries_the_frames_after_a_start_frame_without_lines
     for r, T in zip(results, truth, strict=True):
         rot, pos, _ = pose_errors(r.cam_from_world, T)
         assert pos < 0.01 and rot < 0.2
+
+
+def test_a_fix_pulled_off_its_lines_by_decoy_edges_is_moved_back_along_its_valley():
+    """Half the image's lines have a second edge 3 px beside them, longer (a frame's other side): the
+    refinement, associating first at 2.5 x the score's distance, takes the decoys and settles off the truth.
+    The rival test's valley move refines the orbits associating at the fine distance and returns the truth."""
+    from linereg.pipeline import fine_config
+    from linereg.score import score_pose
+
+    rng = np.random.default_rng(5)
+    directions = np.r_[np.tile(np.eye(3), (12, 1)), rng.normal(size=(8, 3))]
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    starts = rng.uniform(-1.5, 1.5, (len(directions), 3))
+    lines3d = np.c_[starts, starts + rng.uniform(0.4, 1.2, (len(directions), 1)) * directions]
+    truth = look_at(np.array([4.0, 0.0, 0.8]), np.zeros(3))
+    segments = project_visible(lines3d, CAMERA, truth)[0]
+    d = segments[:, 2:] - segments[:, :2]
+    side = 3.0 * np.c_[-d[:, 1], d[:, 0]] / np.linalg.norm(d, axis=1, keepdims=True)
+    half = len(segments) // 2
+    decoys = np.c_[segments[:half, :2] - 0.15 * d[:half], segments[:half, 2:] + 0.15 * d[:half]]
+    decoys += np.tile(side[:half], 2)
+    config = SequenceConfig()
+    image = image_lines(np.r_[segments, decoys], CAMERA, config.register.score)
+    line_map = LineMap.from_segments(lines3d)
+    fix = sequence.refine_from(image, line_map, CAMERA, truth, 1.0, config)
+    assert fix.success and pose_errors(fix.cam_from_world, truth)[0] > 0.1  # pulled off by the decoys
+    moved = sequence.rival_test(image, line_map, CAMERA, fix, config)
+    rot, pos, _ = pose_errors(moved.cam_from_world, truth)
+    assert moved.success and rot < 1e-3 and pos < 1e-4
+    fine = fine_config(config.register)
+    sharper = score_pose(image, lines3d, CAMERA, moved.cam_from_world, fine).value
+    assert sharper > score_pose(image, lines3d, CAMERA, fix.cam_from_world, fine).value

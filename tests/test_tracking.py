@@ -192,7 +192,7 @@ def test_a_fix_short_of_the_valleys_best_is_moved_there():
     score = score_pose(image, line_map.segments, CAMERA, short, rc.score)
     fix = Registration(
         success=True, cam_from_world=short, matches=score.matches(rc.decide.min_cover),
-        score=float(score.value), covariance=np.eye(6) * 1e-4, timings={"track": 0.0},
+        score=float(score.value), covariance=np.eye(6) * 1e-4, rms_px=1.0, timings={"track": 0.0},
     )  # fmt: skip
     moved = rival_test(image, line_map, CAMERA, fix, config)
     assert moved.success
