@@ -272,7 +272,8 @@ def rival_test(
     the valley stops short (on the synthetic walks without odometry, fixes 0.3-0.4 m and 2-3 deg off the
     truth whose orbit one step over scored up to twice as much); at the score's own distance the valley is
     nearly flat (an orbit 0.3 m off the truth scored 14 % more than one 0.1 m off it: moving to the best
-    there claimed more wrong frames, 13 against 8 over four walks), at the finer one the truth stands out where the map's lines are exact."""
+    there claimed more wrong frames, 13 against 8 over four walks), at the finer one the truth stands out
+    where the map's lines are exact."""
     rc = config.register
     dc, segments, T0 = rc.decide, line_map.segments, fix.cam_from_world
     visible = visible_mask(line_map, camera_center(T0), config.relocalize_radius_m)
@@ -342,6 +343,8 @@ def valley_move(
 
     orbits: ``pipeline.orbit_rivals`` of the fix, if known; visible: the map segments taking part
     (``visible_mask``; None: computed here). ``max_rms_px``: the fix's own refinement bound (``fit_limit``)."""
+    if not fix.rms_px <= config.max_rms_px:  # a loose map's fine scores reward the lines that happen to fit
+        return fix
     rc = config.register
     dc, segments, T0 = rc.decide, line_map.segments, fix.cam_from_world
     if visible is None:
@@ -353,8 +356,6 @@ def valley_move(
     def fine_value(T: np.ndarray) -> float:
         return score_pose(image, segments, camera, T, fine, visible).value
 
-    if not fix.rms_px <= config.max_rms_px:  # a loose map's fine scores reward the lines that happen to fit
-        return fix
     same = [
         T for T, s in orbits if s.value >= (1.0 - dc.margin) * fix.score and not differs(T, T0, segments, dc)
     ]
