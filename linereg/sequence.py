@@ -419,8 +419,10 @@ def relocalize(
     predicted: np.ndarray | None,
     radius_m: float,
     config: SequenceConfig,
+    image: ImageLines | None = None,
 ) -> Registration:
-    """Returns the global Registration of undistorted (N, 4) segments, near ``predicted`` when given."""
+    """Returns the global Registration of undistorted (N, 4) segments, near ``predicted`` when given;
+    ``image``: their ``image_lines`` if the caller has them (else made here for ``valley_move``)."""
     prior = None
     if predicted is not None:
         prior = Prior(
@@ -431,7 +433,8 @@ def relocalize(
         return found
     # the decision's answer is the refinement's from the search's pose, which stops wherever its basin lies
     # along a facade's valley, as a tracked fix does: moved as one is (``valley_move``)
-    image = image_lines(lines2d, camera, config.register.score)
+    if image is None:
+        image = image_lines(lines2d, camera, config.register.score)
     moved = valley_move(image, line_map, camera, found, config, fit_limit(found.rms_px, config))
     return found if moved is found else replace(moved, timings=found.timings)
 
@@ -479,7 +482,7 @@ def frames_alone(
                 result = rival_test(image, line_map, camera, result, config, limit)
         if not result.success and (lost < config.relocalize_every or lost % config.relocalize_every == 0):
             start = time.perf_counter()
-            reloc = relocalize(lines[k], line_map, camera, predicted, radius, config)
+            reloc = relocalize(lines[k], line_map, camera, predicted, radius, config, image)
             timings = {**reloc.timings, "relocalize": time.perf_counter() - start}
             if reloc.success:
                 decided = reloc.rms_px

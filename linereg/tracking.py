@@ -236,7 +236,7 @@ class Tracker:
         if enough and (rivalled or (self._lost - 1) % cfg.relocalize_every == 0):
             near = predicted if self._lost <= cfg.global_after_frames or relative is not None else None
             ball = self._reach(stamp) if near is None else None
-            found = self._relocalize(lines, near, radius, ball)
+            found = self._relocalize(lines, image, near, radius, ball)
             if found.success and near is not None and relative is not None:
                 # odometry links this frame to the track: the fix joins its graph as a tracked one does
                 # (gated, weighed against the odometry) instead of restarting it at one frame's answer
@@ -326,18 +326,19 @@ class Tracker:
     def _relocalize(
         self,
         lines: np.ndarray,
+        image: ImageLines,
         near: np.ndarray | None,
         radius: float,
         ball: tuple[np.ndarray, float] | None = None,
     ) -> Registration:
-        """Returns the Registration of (N, 4) undistorted segments, registered near ``near``, else in a
-        ``ball`` ((3,) centre, radius m) at any rotation, else globally."""
+        """Returns the Registration of (N, 4) undistorted segments (``image``: their ``image_lines``),
+        registered near ``near``, else in a ``ball`` ((3,) centre, radius m) at any rotation, else globally."""
         start = time.perf_counter()
         if near is None and ball is not None:
             prior = Prior(position=ball[0], radius_m=ball[1])
             found = localize_segments(lines, self.line_map, self._cam, self.config.sequence.register, prior)
         else:
-            found = relocalize(lines, self.line_map, self._cam, near, radius, self.config.sequence)
+            found = relocalize(lines, self.line_map, self._cam, near, radius, self.config.sequence, image)
         return replace(found, timings={**found.timings, "relocalize": time.perf_counter() - start})
 
     def _confirm(self, lines: np.ndarray, image: ImageLines, added: Registration, stamp: float | None) -> str:
@@ -351,7 +352,7 @@ class Tracker:
         self._unconfirmed += 1
         cfg = self.config.sequence
         if self._unconfirmed % cfg.relocalize_every == 0 and len(lines) >= cfg.register.min_lines2d:
-            found = self._relocalize(lines, None, cfg.max_relocalize_radius_m, self._reach(stamp))
+            found = self._relocalize(lines, image, None, cfg.max_relocalize_radius_m, self._reach(stamp))
             if found.success:
                 T = added.cam_from_world
                 if not differs(found.cam_from_world, T, self.line_map.segments, cfg.register.decide):
