@@ -59,8 +59,11 @@ from .pipeline import (
     explains_too_little,
     fine_config,
     orbit_rivals,
+    precise_config,
     precision_is_evidence,
     sharp_dismisses,
+    sharper_reason,
+    sharper_rival,
     turned_rival,
     with_map_floor,
 )
@@ -289,24 +292,35 @@ def rival_test(
 
     sharp = cache(partial(fine_value, T0))  # the fix's, asked for by the rivals
 
-    def passed() -> Registration:
-        return valley_move(image, line_map, camera, fix, config, max_rms_px, orbits, visible)
-
     scores = {id(T): s for T, s in orbits}
     depth = depth_of(segments[fix.matches[:, 1]], T0) if len(fix.matches) else 1.0
-    for T, value in rivals:
+
+    def evidence(T: np.ndarray) -> bool:
+        theirs = scores.get(id(T)) or score_pose(image, segments, camera, T, rc.score, visible)
+        return precision_is_evidence(
+            theirs.matches(dc.min_cover), fix.matches, line_map.accuracy_m, depth, camera, rc
+        )
+
+    @cache
+    def sharpest() -> float:  # the fix's fine score at its own most precise fit (``_sharper_elsewhere``)
+        at = refine_pose(image, segments, camera, T0, precise_config(rc).refine, rc.score, visible)
+        return max(sharp(), fine_value(at.cam_from_world))
+
+    def passed() -> Registration:
+        for T, value in distinct:  # below the margin, a rival may still fit its lines clearly closer
+            theirs, known = cache(partial(fine_value, T)), partial(evidence, T)
+            if sharper_rival(fix.score, value, sharp(), theirs, known, dc) and sharper_rival(
+                fix.score, value, sharpest(), theirs, known, dc
+            ):
+                words = sharper_reason(T, T0, value, fix.score, theirs(), sharpest(), rc)
+                return replace(fix, success=False, reason=f"{AMBIGUOUS}: {words}")
+        return valley_move(image, line_map, camera, fix, config, max_rms_px, orbits, visible)
+
+    distinct = [(T, v) for T, v in rivals if T is turned[0] or differs(T, T0, segments, dc)]
+    for T, value in distinct:
         if value < (1.0 - dc.margin) * fix.score:
             return passed()
-        if T is not turned[0] and not differs(T, T0, segments, dc):
-            continue
-
-        def evidence(T: np.ndarray = T) -> bool:
-            theirs = scores.get(id(T)) or score_pose(image, segments, camera, T, rc.score, visible)
-            return precision_is_evidence(
-                theirs.matches(dc.min_cover), fix.matches, line_map.accuracy_m, depth, camera, rc
-            )
-
-        if sharp_dismisses(fix.score, value, sharp(), partial(fine_value, T), evidence, dc):
+        if sharp_dismisses(fix.score, value, sharp(), partial(fine_value, T), partial(evidence, T), dc):
             continue
         turn = rotation_error_deg(T[:3, :3], T0[:3, :3])
         shift = float(np.linalg.norm(camera_center(T) - camera_center(T0)))
@@ -364,8 +378,7 @@ def valley_move(
     mine = fine_value(T0)
     if max(fine_value(T) for T in same) <= mine:
         return fix
-    first = max(fine.distance_px, rc.refine.min_outlier_px) / rc.score.distance_px
-    precise = replace(config, register=replace(rc, refine=replace(rc.refine, start_factor=first)))
+    precise = replace(config, register=precise_config(rc))
     starts = [T for i, T in enumerate(same) if not any(np.allclose(T, U, atol=1e-9) for U in same[:i])]
     moves = [
         refine_from(image, line_map, camera, T, config.relocalize_radius_m, precise, max_rms_px)

@@ -1,6 +1,8 @@
 """The decision (``pipeline.decide``): an answer must beat every distinct pose, including the best pose
 turned by small angles (``turned_rival``), whose scores come from ``score.shifted_values``."""
 
+from dataclasses import replace
+
 import numpy as np
 
 import linereg
@@ -16,7 +18,7 @@ from linereg.localization import map_view
 from linereg.pipeline import fine_value, in_basin, no_worse, turned_rival, view_score
 from linereg.refine import refine_pose
 from linereg.score import image_lines, project_clipped, score_pose, score_projected, shifted_values
-from linereg.sim.synthetic import look_at, paper_scene, project_visible
+from linereg.sim.synthetic import decoy_scene, look_at, paper_scene, project_visible
 
 
 def test_shifted_values_are_the_scores_of_the_shifted_projections(rng):
@@ -281,6 +283,55 @@ def test_a_rival_scoring_at_least_the_best_is_never_set_aside_as_less_precise():
     # the best not sharp (it keeps less than sharp_keep of its score), or the rival as sharp: no dismissal
     assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 400.0, fine_rival, lambda: True, dc)
     assert not linereg.pipeline.sharp_dismisses(1000.0, 900.0, 800.0, lambda: 790.0, lambda: True, dc)
+
+
+def test_a_rival_below_the_margin_whose_lines_lie_clearly_closer_makes_the_best_ambiguous():
+    """The mirror of the sharpness rule: a distinct rival scoring below the margin at the score's distance
+    but keeping ``sharp_keep`` of its score at the finer one, where the best falls below the margin of it,
+    is an ambiguity (the two scales disagree); not when it is within the margin (judged there), blurry
+    itself, not clearly sharper, or not comparable (no evidence). Its finer score is asked for only when it
+    can be sharper: a fine score never exceeds the score."""
+    dc = RegisterConfig().decide
+    asked: list[bool] = []
+
+    def fine_rival(value: float):
+        def fine() -> float:
+            asked.append(True)
+            return value
+
+        return fine
+
+    sharper = linereg.pipeline.sharper_rival
+    assert sharper(1000.0, 800.0, 300.0, fine_rival(700.0), lambda: True, dc)
+    assert not sharper(1000.0, 800.0, 300.0, fine_rival(700.0), lambda: False, dc)  # not comparable
+    assert not sharper(1000.0, 900.0, 300.0, fine_rival(700.0), lambda: True, dc)  # within the margin
+    assert not sharper(1000.0, 800.0, 300.0, fine_rival(350.0), lambda: True, dc)  # not clearly sharper
+    assert not sharper(1000.0, 800.0, 300.0, fine_rival(390.0), lambda: True, dc)  # keeps < sharp_keep
+    asked.clear()
+    assert not sharper(1000.0, 300.0, 300.0, fine_rival(300.0), lambda: True, dc)  # cannot be sharper
+    assert not asked
+
+
+def test_the_decision_leads_with_the_most_precise_pose_of_its_answer():
+    """Half the image's lines have a longer second edge 3 px beside them (a frame's other side): the
+    refinement from the truth settles between them, a pose scoring as much as the truth at the score's
+    distance. Both are the same answer, and among the contenders the decision leads with the truth, whose
+    lines lie within the finer distance (``_sharpest_first``), whichever the score put first."""
+    from linereg.pipeline import _sharpest_first
+
+    camera = linereg.Camera(fx=500.0, fy=500.0, cx=319.5, cy=239.5, width=640, height=480)
+    lines3d, truth, lines2d = decoy_scene(camera)
+    config = RegisterConfig()
+    image = image_lines(lines2d, camera, config.score)
+    view = map_view(linereg.LineMap.from_segments(lines3d), None, config)
+    pulled = refine_pose(image, lines3d, camera, truth, config.refine, config.score)
+    assert rotation_error_deg(pulled.cam_from_world[:3, :3], truth[:3, :3]) > 0.1
+    refined = [pulled, replace(pulled, cam_from_world=truth)]
+    seen = [view_score(view, image, camera, r.cam_from_world, config.score) for r in refined]
+    # the score's distance hardly tells them apart: whichever it puts first, the truth leads
+    assert abs(seen[0][0].value - seen[1][0].value) < 0.01 * seen[1][0].value
+    assert _sharpest_first([0, 1], refined, seen, view, image, camera, config) == [1, 0]
+    assert _sharpest_first([1, 0], refined, seen, view, image, camera, config) == [1, 0]
 
 
 def test_precision_compares_fits_of_the_same_map_lines_or_of_an_accurate_map(camera):

@@ -20,7 +20,7 @@ from linereg.priors import Prior
 from linereg.registration import Registration
 from linereg.score import image_lines
 from linereg.sequence import FROM_NEIGHBOURS, GATED, SequenceConfig, frames_alone, localize_sequence
-from linereg.sim.synthetic import look_at, project_visible
+from linereg.sim.synthetic import decoy_scene, look_at, project_visible
 from linereg.tracking import Tracker, TrackingConfig, innovation_distance
 
 CAMERA = Camera(fx=800.0, fy=800.0, cx=320.0, cy=240.0, width=640, height=480)
@@ -418,20 +418,9 @@ def test_a_fix_pulled_off_its_lines_by_decoy_edges_is_moved_back_along_its_valle
     from linereg.pipeline import fine_config
     from linereg.score import score_pose
 
-    rng = np.random.default_rng(5)
-    directions = np.r_[np.tile(np.eye(3), (12, 1)), rng.normal(size=(8, 3))]
-    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
-    starts = rng.uniform(-1.5, 1.5, (len(directions), 3))
-    lines3d = np.c_[starts, starts + rng.uniform(0.4, 1.2, (len(directions), 1)) * directions]
-    truth = look_at(np.array([4.0, 0.0, 0.8]), np.zeros(3))
-    segments = project_visible(lines3d, CAMERA, truth)[0]
-    d = segments[:, 2:] - segments[:, :2]
-    side = 3.0 * np.c_[-d[:, 1], d[:, 0]] / np.linalg.norm(d, axis=1, keepdims=True)
-    half = len(segments) // 2
-    decoys = np.c_[segments[:half, :2] - 0.15 * d[:half], segments[:half, 2:] + 0.15 * d[:half]]
-    decoys += np.tile(side[:half], 2)
+    lines3d, truth, lines2d = decoy_scene(CAMERA)
     config = SequenceConfig()
-    image = image_lines(np.r_[segments, decoys], CAMERA, config.register.score)
+    image = image_lines(lines2d, CAMERA, config.register.score)
     line_map = LineMap.from_segments(lines3d)
     fix = sequence.refine_from(image, line_map, CAMERA, truth, 1.0, config)
     assert fix.success and pose_errors(fix.cam_from_world, truth)[0] > 0.1  # pulled off by the decoys

@@ -107,6 +107,25 @@ def project_visible(
     return seg[keep], np.flatnonzero(keep)
 
 
+def decoy_scene(camera: Camera, seed: int = 5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns ((M, 6) map segments, (4, 4) true cam_from_world, (N, 4) image segments) of 20 random lines
+    (12 along the axes) seen from 4 m, where half the image's lines have a second edge 3 px beside them,
+    30 % longer (a frame's other side): a refinement associating loosely settles between the two."""
+    rng = np.random.default_rng(seed)
+    directions = np.r_[np.tile(np.eye(3), (12, 1)), rng.normal(size=(8, 3))]
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    starts = rng.uniform(-1.5, 1.5, (len(directions), 3))
+    lines3d = np.c_[starts, starts + rng.uniform(0.4, 1.2, (len(directions), 1)) * directions]
+    truth = look_at(np.array([4.0, 0.0, 0.8]), np.zeros(3))
+    segments = project_visible(lines3d, camera, truth)[0]
+    d = segments[:, 2:] - segments[:, :2]
+    side = 3.0 * np.c_[-d[:, 1], d[:, 0]] / np.linalg.norm(d, axis=1, keepdims=True)
+    half = len(segments) // 2
+    decoys = np.c_[segments[:half, :2] - 0.15 * d[:half], segments[:half, 2:] + 0.15 * d[:half]]
+    decoys += np.tile(side[:half], 2)
+    return lines3d, truth, np.r_[segments, decoys]
+
+
 def random_image_segments(
     rng: np.random.Generator, n: int, camera: Camera, lengths_px: np.ndarray, top: float = 0.0
 ) -> np.ndarray:
