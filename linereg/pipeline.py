@@ -126,8 +126,10 @@ def register_undistorted(
         if config.rotation.refit:
             candidates = refine_candidates(candidates, vds, view.clusters, lines2d, camera)
         rotations = [c.R for c in candidates]
-        if not rotations:
-            rotations = single_direction_candidates(vds, view.clusters, lines2d, camera, config.rotation)
+        singles = partial(single_direction_candidates, vds, view.clusters, lines2d, camera, config.rotation)
+        paired = bool(rotations)
+        if not paired:
+            rotations = singles()
         if prior is not None and prior.cam_from_world is not None:
             rotations.append(prior.cam_from_world[:3, :3])
         rotations = [R for R in rotations if admits(prior, R)]
@@ -136,16 +138,54 @@ def register_undistorted(
         if prior is not None and (prior.gravity is not None or prior.cam_from_world is not None):
             reason += " agrees with the prior"
         return Registration(success=False, reason=reason, timings=timer.finish())
+    image = image_lines(lines2d, camera, config.score)
+    # the map's margins cut to a prior's ball: the same box twice is searched once
+    regions: list[tuple[np.ndarray, np.ndarray]] = []
+    for margin in config.search.region_margins:
+        lo, hi = search_region(view.segments, prior, margin)
+        if not any(np.array_equal(lo, a) and np.array_equal(hi, b) for a, b in regions):
+            regions.append((lo, hi))
+    result, found = _search_and_decide(
+        lines2d, image, view, camera, config, timer, prior, rotations, regions, []
+    )
+    if result.success or not paired:
+        return result
+    # the paired directions left no answer: the second may be a chance alignment of clutter (on the paper's
+    # scenes with 30-60 % outlier segments, a VD of random segments outscored a true one, and every paired
+    # rotation was 50-90 deg off), so the strongest direction alone, its angle searched with a bound
+    # (``single_direction_candidates``), adds rotations; the decision then weighs every pose found
+    with timer("rotation"):
+        more = [
+            R
+            for R in singles()
+            if admits(prior, R)
+            and all(rotation_error_deg(R, Q) > config.rotation.dedupe_angle_deg for Q in rotations)
+        ]
+    if not more:
+        return result
+    return _search_and_decide(
+        lines2d, image, view, camera, config, timer, prior, rotations + more, regions, found, len(rotations)
+    )[0]
+
+
+def _search_and_decide(
+    lines2d: np.ndarray,
+    image: ImageLines,
+    view: MapView,
+    camera: Camera,
+    config: RegisterConfig,
+    timer: StageTimer,
+    prior: Prior | None,
+    rotations: list[np.ndarray],
+    regions: list[tuple[np.ndarray, np.ndarray]],
+    before: list[Found],
+    searched: int = 0,
+) -> tuple[Registration, list[Found]]:
+    """Returns (the Registration, the poses found) of a search over ``rotations[searched:]`` (III-C) with
+    the poses ``before`` found under the first ``searched``, refined (III-D) and decided over all of them."""
     # III-C: camera centres from the rays of matched corners, the best solved locally and scored (near the
     # map on a fine grid, farther out on a coarser one: a photo of a small mapped object is taken from afar)
     with timer("search"):
-        image = image_lines(lines2d, camera, config.score)
-        # the map's margins cut to a prior's ball: the same box twice is searched once
-        regions: list[tuple[np.ndarray, np.ndarray]] = []
-        for margin in config.search.region_margins:
-            lo, hi = search_region(view.segments, prior, margin)
-            if not any(np.array_equal(lo, a) and np.array_equal(hi, b) for a, b in regions):
-                regions.append((lo, hi))
         found, _ = search(
             image,
             image_points(lines2d, config.points),
@@ -153,7 +193,7 @@ def register_undistorted(
             view.points,
             view.signatures,
             camera,
-            rotations,
+            rotations[searched:],
             regions,
             config.search,
             config.score,
@@ -162,10 +202,13 @@ def register_undistorted(
         )
     # a prior is a bound: poses the local solves or the refinement carry out of it are neither answers nor
     # rivals (``priors.admits_pose``)
-    found = [f for f in found if admits_pose(prior, f.cam_from_world)]
+    found = [
+        replace(f, rotation=f.rotation + searched) for f in found if admits_pose(prior, f.cam_from_world)
+    ]
+    found = sorted(before + found, key=lambda f: -f.score.value)
     if not found:
         reason = "no pose explains any image line" + (" within the prior" if prior is not None else "")
-        return Registration(success=False, reason=reason, timings=timer.finish())
+        return Registration(success=False, reason=reason, timings=timer.finish()), found
     # III-D: GTSAM refinement of the best distinct poses on their matched fragments
     with timer("refine"):
         refined = [
@@ -184,12 +227,12 @@ def register_undistorted(
         refined = [r for r in refined if admits_pose(prior, r.cam_from_world)]
     if not refined:
         reason = "every pose refined leaves the prior's bounds"
-        return Registration(success=False, reason=reason, timings=timer.finish())
+        return Registration(success=False, reason=reason, timings=timer.finish()), found
     # copies of what the best pose sees elsewhere in the map: rivals the search need not have solved
     with timer("copies"):
-        seen, found = with_copies(refined, found, view, image, camera, config, rotations, regions)
+        seen, rivals = with_copies(refined, found, view, image, camera, config, rotations, regions)
     space = SearchSpace.of(regions, len(rotations), config)
-    return decide(refined, seen, found, view, image, camera, config, timer, space)
+    return decide(refined, seen, rivals, view, image, camera, config, timer, space), found
 
 
 def decide(
