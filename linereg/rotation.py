@@ -125,10 +125,10 @@ def single_direction_candidates(
     the best are re-fitted to their segments (``_refit``); at most ``max_candidates``, best first.
 
     Used when two directions do not pair (an image with one vanishing direction: a single facade seen
-    head-on, a corridor, clutter hiding the second direction's VD), and when the paired candidates leave
-    no answer (``pipeline.register_undistorted``: the second direction may be a chance alignment of
-    clutter). Beside every paired candidate they would multiply the rotations searched (4 -> 28 on the
-    paper's scenes) and the search's time with them.
+    head-on, a corridor, clutter hiding the second direction's VD), and when no pose under the paired
+    candidates explains the image (``pipeline.register_undistorted``: the second direction may be a chance
+    alignment of clutter). Beside every paired candidate they would multiply the rotations searched (4 ->
+    28 on the paper's scenes) and the search's time with them.
     """
     config = config or RotationConfig()
     if len(vds) == 0 or len(clusters) == 0:

@@ -39,8 +39,8 @@ def test_a_chance_second_direction_leaves_the_strongest_one_to_find_the_rotation
     """Paper scenes with 60 % outlier segments on both sides (seeds 0-9): in two of them the image's second
     vanishing direction is a chance alignment of random segments and every paired rotation candidate lies
     more than 30 deg from the truth. The strongest direction alone, its angle about it searched
-    (``rotation.single_direction_candidates``, tried when the paired ones leave no answer), finds the pose
-    in both; no scene claims a wrong one."""
+    (``rotation.single_direction_candidates``, tried when no pose under the paired ones explains the
+    image), finds the pose in both; no scene claims a wrong one."""
     from linereg.config import RegisterConfig
     from linereg.localization import map_view
     from linereg.rotation import rotation_candidates
