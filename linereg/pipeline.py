@@ -151,8 +151,9 @@ def register_undistorted(
         lo, hi = search_region(view.segments, prior, margin)
         if not any(np.array_equal(lo, a) and np.array_equal(hi, b) for a, b in regions):
             regions.append((lo, hi))
+    points = image_points(lines2d, config.points)
     result, found = _search_and_decide(
-        lines2d, image, view, camera, config, timer, prior, rotations, regions, []
+        image, points, view, camera, config, timer, prior, rotations, regions, []
     )
     if not paired or not result.reason.startswith((NOTHING_FOUND, UNEXPLAINED)):
         return result
@@ -174,13 +175,13 @@ def register_undistorted(
     if not more:
         return result
     return _search_and_decide(
-        lines2d, image, view, camera, config, timer, prior, rotations + more, regions, found, len(rotations)
+        image, points, view, camera, config, timer, prior, rotations + more, regions, found, len(rotations)
     )[0]
 
 
 def _search_and_decide(
-    lines2d: np.ndarray,
     image: ImageLines,
+    image_pts: Points,
     view: MapView,
     camera: Camera,
     config: RegisterConfig,
@@ -191,14 +192,15 @@ def _search_and_decide(
     before: list[Found],
     searched: int = 0,
 ) -> tuple[Registration, list[Found]]:
-    """Returns (the Registration, the poses found) of a search over ``rotations[searched:]`` (III-C) with
+    """Returns (the Registration, the poses found) of a search over ``rotations[searched:]`` (III-C; the
+    image side ``image`` and ``image_pts`` made once by the caller) with
     the poses ``before`` found under the first ``searched``, refined (III-D) and decided over all of them."""
     # III-C: camera centres from the rays of matched corners, the best solved locally and scored (near the
     # map on a fine grid, farther out on a coarser one: a photo of a small mapped object is taken from afar)
     with timer("search"):
         found, _ = search(
             image,
-            image_points(lines2d, config.points),
+            image_pts,
             view.segments,
             view.points,
             view.signatures,
@@ -787,29 +789,32 @@ def _sharper_elsewhere(
     its score within 1 px, and a copy of the facade behind a wall seeing a fifth of the lines kept all of
     its), or ""."""
     dc = config.decide
-    refined = False
+
+    @cache
+    def sharpest() -> float:  # judged at the best's own most precise fit: refined associating finely
+        precise = precise_config(config).refine
+        at = refine_pose(
+            image, view.segments, camera, best.cam_from_world, precise, config.score, view.visible
+        )
+        return max(sharp, fine_value(view, image, camera, at.cam_from_world, config))
+
     for T, value, known in alternatives:
         # its occlusion-aware (Score, seen), for the precision test
         their = cache(lambda T=T, known=known: known or view_score(view, image, camera, T, config.score))
         fine = cache(partial(fine_value, view, image, camera, T, config))
 
+        @cache
         def evidence(their: Callable[[], tuple[Score, np.ndarray]] = their) -> bool:
             theirs = their()[0].matches(dc.min_cover)
             return precision_is_evidence(theirs, matches, view.accuracy_m, depth, camera, config)
 
-        if not sharper_rival(best.score.value, value, sharp, fine, evidence, dc):
-            continue
-        # judged at the best's own most precise fit: a refinement associating at the fine distance
-        if not refined:
-            precise = precise_config(config)
-            at = refine_pose(
-                image, view.segments, camera, best.cam_from_world, precise.refine, config.score, view.visible
+        if sharper_rival(best.score.value, value, sharp, fine, evidence, dc) and sharper_rival(
+            best.score.value, value, sharpest(), fine, evidence, dc
+        ):
+            words = sharper_reason(
+                T, best.cam_from_world, value, best.score.value, fine(), sharpest(), config
             )
-            sharp, refined = max(sharp, fine_value(view, image, camera, at.cam_from_world, config)), True
-            if not sharper_rival(best.score.value, value, sharp, fine, evidence, dc):
-                continue
-        words = sharper_reason(T, best.cam_from_world, value, best.score.value, fine(), sharp, config)
-        return f"ambiguous: {words}"
+            return f"ambiguous: {words}"
     return ""
 
 

@@ -308,7 +308,7 @@ def rival_test(
 
     def passed() -> Registration:
         for T, value in distinct:  # below the margin, a rival may still fit its lines clearly closer
-            theirs, known = cache(partial(fine_value, T)), partial(evidence, T)
+            theirs, known = cache(partial(fine_value, T)), cache(partial(evidence, T))
             if sharper_rival(fix.score, value, sharp(), theirs, known, dc) and sharper_rival(
                 fix.score, value, sharpest(), theirs, known, dc
             ):
