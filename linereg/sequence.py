@@ -245,8 +245,9 @@ def fit_limit(reference_px: float | None, config: SequenceConfig) -> float:
     a few pixels off (the 7-Scenes kitchen's decided poses and its truths alike refine to 4.5-5 px), a
     procedural scan's within one; a fixed bar held every tracked frame of the kitchen to the scan's.
     The batch's frames (``frames_alone``) each face the rival test; the live ``Tracker`` with odometry skips
-    it for speed (its fixes are only moved along their valley) and keeps the fixed bar: with this limit its fixes on the kitchen, refined from a track
-    2-3 deg off, held the track there (9 frames claimed 0.3 m off, within 10 cm / 2 deg 53.7 -> 23.7 %)."""
+    it for speed (its fixes are only moved along their valley) and keeps the fixed bar: with this limit its
+    fixes on the kitchen, refined from a track 2-3 deg off, held the track there (9 frames claimed 0.3 m off,
+    within 10 cm / 2 deg 53.7 -> 23.7 %)."""
     if reference_px is None or not np.isfinite(reference_px):
         return config.max_rms_px
     return max(config.max_rms_px, config.loose_factor * reference_px)

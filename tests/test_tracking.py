@@ -205,10 +205,10 @@ def test_a_fix_short_of_the_valleys_best_is_moved_there():
 
 def test_a_fix_with_odometry_is_moved_along_its_valley(monkeypatch):
     """With odometry the rival tests are skipped (their cost), but a fix still goes through the valley move
-    (``sequence.valley_move``): a track refined from a prediction already off settles in the nearest basin,
-    and on the synthetic walk with odometry one such track slid 0.31 m off and claimed it, where an orbit of
-    the fix one step over fitted the lines closer (docs/measurements.md, session 46). The tracker joins
-    what the move returns."""
+    (``sequence.valley_move``): a track refined from a prediction already off settles in the nearest basin
+    (on the synthetic walks with odometry the move took the wrong claims from 1 to 0 and the frames within
+    10 cm / 2 deg from 1,003 to 1,111 of 1,280; docs/measurements.md, session 46). The tracker joins what
+    the move returns."""
     import itertools
     from dataclasses import replace
 
