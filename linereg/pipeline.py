@@ -160,7 +160,7 @@ def register_undistorted(
     # no pose under the paired rotations explains the image (too few matches, too little of its lines; not
     # a pose that explains much but not uniquely or not beyond chance): the second direction may be a chance
     # alignment of clutter (on the paper's scenes with 30-60 % outlier segments a VD of random segments
-    # outscored a true one, and every paired rotation was 50-90 deg off), so the strongest direction alone,
+    # outscored a true one, and every paired rotation was 50-90 deg off), so each strong direction alone,
     # its angle searched with a bound (``single_direction_candidates``), adds rotations, and the decision
     # weighs every pose found. (Tried after every unanswered photo, or after every photo whose rotations no
     # third direction confirms, they took the shared real photos from 1.27 s to 1.9-2.3 s median and

@@ -115,14 +115,17 @@ def single_direction_candidates(
     camera: Camera,
     config: RotationConfig | None = None,
 ) -> list[np.ndarray]:
-    """Returns (3, 3) rotations that map a 3D cluster direction (either sense) onto the strongest vanishing
-    direction, at the angles about it where the map's other directions explain the most image segments.
+    """Returns (3, 3) rotations that map a 3D cluster direction (either sense) onto one of the ``top_k``
+    strongest vanishing directions, at the angles about it where the map's other directions explain the most
+    image segments: those of the strongest direction first (``_one_direction_candidates``), then those of
+    the next that no earlier one duplicates.
 
-    One matched direction leaves the angle about it free. For each of the ``top_k`` strongest clusters and
-    each sense, every angle is scored by the length of the image segments (those not of the matched VD) whose
-    interpretation plane holds some other map direction within ``single_tolerance_deg`` (``free_angle_scores``:
-    on a grid with a bound, so no angle is skipped). The local maxima holding at least ``single_min_share`` of
-    the best are re-fitted to their segments (``_refit``); at most ``max_candidates``, best first.
+    Every strong direction is matched, not only the strongest: where these rotations are needed, a chance
+    alignment of clutter may be the strongest (on two paper scenes with 60 % outlier segments the strongest
+    lay 10 and 34 deg from every true direction, the second or third 2-9 deg from one). Each direction
+    keeps its own ``max_candidates``: ranked together, a wrong direction's angles pushed the true
+    direction's out of a shared list, where they rank low (16th-22nd of 24: the score of an angle counts
+    clutter too; docs/measurements.md, session 47).
 
     Used when two directions do not pair (an image with one vanishing direction: a single facade seen
     head-on, a corridor, clutter hiding the second direction's VD), and when no pose under the paired
@@ -133,10 +136,32 @@ def single_direction_candidates(
     config = config or RotationConfig()
     if len(vds) == 0 or len(clusters) == 0:
         return []
-    v = vds.directions[0]
     normals = interpretation_normals(lines2d, camera)
     lengths = segment_lengths(lines2d)
-    free = vds.labels != 0 if len(vds.labels) == len(lines2d) else np.ones(len(lines2d), bool)
+    out: list[np.ndarray] = []
+    for k in range(min(len(vds), config.top_k)):
+        for R in _one_direction_candidates(vds, k, clusters, normals, lengths, config):
+            if all(rotation_error_deg(R, Q) > config.dedupe_angle_deg for Q in out):
+                out.append(R)
+    return out
+
+
+def _one_direction_candidates(
+    vds: DirectionClusters,
+    k: int,
+    clusters: DirectionClusters,
+    normals: np.ndarray,
+    lengths: np.ndarray,
+    config: RotationConfig,
+) -> list[np.ndarray]:
+    """Returns ``single_direction_candidates``' rotations of vanishing direction ``k`` alone: for each of
+    the ``top_k`` strongest clusters and each sense, every angle about it is scored by the length of the
+    image segments ((N, 3) interpretation-plane ``normals``, (N,) ``lengths``; those not of VD ``k``) whose
+    plane holds some other map direction within ``single_tolerance_deg`` (``free_angle_scores``: on a grid
+    with a bound, so no angle is skipped). The local maxima holding at least ``single_min_share`` of the best
+    are re-fitted to their segments (``_refit``); at most ``max_candidates``, best first."""
+    v = vds.directions[k]
+    free = vds.labels != k if len(vds.labels) == len(normals) else np.ones(len(normals), bool)
     # a segment whose plane holds the matched direction is explained whatever the angle: it says nothing
     free &= np.abs(normals @ v) > np.sin(np.radians(config.single_tolerance_deg))
     found: list[tuple[float, np.ndarray]] = []
@@ -149,10 +174,10 @@ def single_direction_candidates(
             angles, score = free_angle_scores(
                 v, normals[free], lengths[free], others @ R0.T, config.single_tolerance_deg
             )
-            for k in _circular_peaks(score, config.single_min_share * float(score.max())):
-                R = rotation_from_vector(angles[k] * v) @ R0
+            for peak in _circular_peaks(score, config.single_min_share * float(score.max())):
+                R = rotation_from_vector(angles[peak] * v) @ R0
                 found.append(
-                    (float(score[k]), _refit_free(R, v, c, sign, normals, lengths, free, clusters, config))
+                    (float(score[peak]), _refit_free(R, v, c, sign, normals, lengths, free, clusters, config))
                 )
     if not found:
         return []
