@@ -140,6 +140,24 @@ def test_agreements_count_exactly_what_reaches_the_share():
     assert any(s >= 0.2 for _, s in every)  # the clumps hold copies the bound must keep
 
 
+def test_the_agreements_bound_keeps_what_numpy_sums_keep():
+    """``copies._bound_kept`` (the compiled bound of ``_agreements``) keeps exactly the votes that summing
+    each hashed voxel's weights with ``np.bincount`` and comparing keeps: the same floats, the same order."""
+    from linereg.copies import _bound_kept
+
+    rng = np.random.default_rng(11)
+    for pairs, span in ((1, 3), (40, 2), (3000, 30), (20000, 400)):
+        cell = rng.integers(0, span**3, pairs).astype(np.int64)
+        offsets = (np.indices((2, 2, 2)).reshape(3, 8).T * [span * span, span, 1]).sum(axis=1)
+        weight = rng.uniform(0.1, 3.0, pairs)
+        cells = (cell[:, None] + offsets[None]).reshape(-1)
+        for bins in (1, 7, max(16 * pairs, 1)):
+            bound = np.bincount(cells % bins, weights=np.repeat(weight, 8))
+            for threshold in (0.0, float(np.median(bound[cells % bins])), float(bound.max()), np.inf):
+                expected = np.flatnonzero(bound[cells % bins] >= threshold)
+                np.testing.assert_array_equal(_bound_kept(cell, offsets, weight, bins, threshold), expected)
+
+
 def test_first_of_each_is_numpys_unique_with_first_indices():
     """``copies._first_of_each`` (the agreements' once-per-voxel count) gives what ``np.unique(...,
     return_index=True)`` gives: the distinct values sorted, each with the index of its first occurrence."""
