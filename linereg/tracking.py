@@ -17,7 +17,10 @@ a fix on a track whose last ``consistency_window`` fixes together lie beyond the
 refined from a guess (a prediction without odometry, or after a lost frame) must also pass the global
 decision's rival tests (``sequence.rival_test``: the fix turned and orbited, then moved along its valley);
 a fix from odometry skips the tests (their cost) but is moved along its valley too (``sequence.valley_move``:
-a track refined from a prediction already off settles in the nearest basin); one refused for a rival is
+a track refined from a prediction already off settles in the nearest basin); every fix then meets its
+prediction refined at the fine distance and becomes it when that is the same answer and sharper
+(``sequence.prediction_move``: a refinement from a prediction on the truth can slide to a neighbouring
+basin that scores more at 4 px and fits less closely); one refused for a rival is
 relocalized near its prediction at once; when that cannot decide either, without odometry the fix joins
 the graph unclaimed (event tracked, reason "ambiguous ... the track follows it") rather than leaving the
 track to the constant-velocity guess. A relocalization not near a prediction (global, or in the ball the
@@ -72,6 +75,7 @@ from .sequence import (
     AMBIGUOUS,
     FROM_NEIGHBOURS,
     SequenceConfig,
+    prediction_move,
     refine_from,
     relocalize,
     rival_test,
@@ -390,6 +394,8 @@ class Tracker:
         elif best.success:  # with odometry no rival test (its cost), but the fix moves along its valley
             # (the synthetic walks with odometry: 1 -> 0 wrong claims, 1,003 -> 1,111 of 1,280 frames within)
             best = valley_move(image, self.line_map, self._cam, best, self.config.sequence)
+        if best.success:  # the prediction refined at the fine distance, if it is the same answer and sharper
+            best = prediction_move(image, self.line_map, self._cam, best, starts[0], self.config.sequence)
         if best.success:
             self._explained = [*self._explained[-4:], best.explained_fraction]
         return best

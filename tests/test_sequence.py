@@ -430,3 +430,28 @@ def test_a_fix_pulled_off_its_lines_by_decoy_edges_is_moved_back_along_its_valle
     fine = fine_config(config.register)
     sharper = score_pose(image, lines3d, CAMERA, moved.cam_from_world, fine).value
     assert sharper > score_pose(image, lines3d, CAMERA, fix.cam_from_world, fine).value
+
+
+def test_a_fix_pulled_off_by_decoy_edges_is_moved_to_its_prediction_refined_finely():
+    """The tracker's prediction move (``sequence.prediction_move``): the decoy scene's fix, pulled off the
+    truth, is replaced by the prediction (here the truth) refined at the fine distance, which fits the lines
+    closer; a prediction that is another answer (3 m away), or a fix on a loose map (rms above
+    ``max_rms_px``), leaves the fix as it is."""
+    from dataclasses import replace
+
+    from linereg.geometry import make_cam_from_world
+
+    lines3d, truth, lines2d = decoy_scene(CAMERA)
+    config = SequenceConfig()
+    image = image_lines(lines2d, CAMERA, config.register.score)
+    line_map = LineMap.from_segments(lines3d)
+    fix = sequence.refine_from(image, line_map, CAMERA, truth, 1.0, config)
+    assert fix.success and pose_errors(fix.cam_from_world, truth)[0] > 0.1
+    moved = sequence.prediction_move(image, line_map, CAMERA, fix, truth, config)
+    rot, pos, _ = pose_errors(moved.cam_from_world, truth)
+    assert moved.success and rot < 1e-3 and pos < 1e-4
+    R, c = truth[:3, :3], -truth[:3, :3].T @ truth[:3, 3]
+    elsewhere = make_cam_from_world(R, -R @ (c + np.array([3.0, 0.0, 0.0])))
+    assert sequence.prediction_move(image, line_map, CAMERA, fix, elsewhere, config) is fix
+    loose = replace(fix, rms_px=config.max_rms_px + 0.5)
+    assert sequence.prediction_move(image, line_map, CAMERA, loose, truth, config) is loose

@@ -203,22 +203,30 @@ def test_a_fix_short_of_the_valleys_best_is_moved_there():
     assert value > score_pose(image, line_map.segments, CAMERA, short, fine).value
 
 
+def _started_with_odometry():
+    """Returns (a Tracker started at the first true pose of ``_scene(2)``, the true poses, the frames, the
+    exact odometry between them)."""
+    import itertools
+
+    from linereg.graph import relative_pose
+
+    line_map, truth, frames = _scene(2)
+    tracker = Tracker(line_map, CAMERA)
+    tracker.start_at(truth[0])
+    return tracker, truth, frames, [relative_pose(a, b) for a, b in itertools.pairwise(truth)]
+
+
 def test_a_fix_with_odometry_is_moved_along_its_valley(monkeypatch):
     """With odometry the rival tests are skipped (their cost), but a fix still goes through the valley move
     (``sequence.valley_move``): a track refined from a prediction already off settles in the nearest basin
     (on the synthetic walks with odometry the move took the wrong claims from 1 to 0 and the frames within
     10 cm / 2 deg from 1,003 to 1,111 of 1,280; docs/measurements.md, session 46). The tracker joins what
     the move returns."""
-    import itertools
     from dataclasses import replace
 
     from linereg import tracking
-    from linereg.graph import relative_pose
 
-    line_map, truth, frames = _scene(2)
-    relative = [relative_pose(a, b) for a, b in itertools.pairwise(truth)]
-    tracker = Tracker(line_map, CAMERA)
-    tracker.start_at(truth[0])
+    tracker, truth, frames, relative = _started_with_odometry()
     moved = []
     real = tracking.valley_move
 
@@ -231,4 +239,30 @@ def test_a_fix_with_odometry_is_moved_along_its_valley(monkeypatch):
     r = tracker.step(frames[1], relative[0])
     assert len(moved) == 1 and moved[0].success
     assert r.success and r.reason == "moved" and tracker.event == "tracked"
+    assert pose_errors(r.cam_from_world, truth[1])[1] < 1e-3
+
+
+def test_a_fix_meets_its_prediction_refined_finely(monkeypatch):
+    """Every fix, with odometry or without, goes through the prediction move last
+    (``sequence.prediction_move``, given the prediction the fix was refined from): on the synthetic walks
+    it took the trackers' wrong claims from 4 to 1 and their frames within 10 cm / 2 deg from 2,100 to
+    2,152 of 3,840 (docs/measurements.md, session 47). The tracker joins what the move returns."""
+    from dataclasses import replace
+
+    from linereg import tracking
+    from linereg.graph import predict
+
+    tracker, truth, frames, relative = _started_with_odometry()
+    seen = []
+    real = tracking.prediction_move
+
+    def spy(image, map_, camera, fix, predicted, config):
+        seen.append(predicted)
+        return replace(real(image, map_, camera, fix, predicted, config), reason="met")
+
+    monkeypatch.setattr(tracking, "prediction_move", spy)
+    r = tracker.step(frames[1], relative[0])
+    assert len(seen) == 1
+    np.testing.assert_allclose(seen[0], predict(truth[0], relative[0]), atol=1e-12)
+    assert r.success and r.reason == "met" and tracker.event == "tracked"
     assert pose_errors(r.cam_from_world, truth[1])[1] < 1e-3
