@@ -396,6 +396,7 @@ def run(args: argparse.Namespace) -> int:
     prior = None if args.prior is None else (float(args.prior[0]), float(args.prior[1]))
     overlay_dir = args.out if args.overlay else None
     edges = args.intensity_edges
+    report.warm_up()
     scenes = [
         run_scene(
             folder, bounds, overlay_dir, args.stages, args.plane_directions, args.map_config, prior, edges

@@ -350,6 +350,7 @@ def run(args: argparse.Namespace) -> int:
     import sys
 
     options = options_from_args(args)
+    report.warm_up()
     progress = report.Progress(len(cells(options.quick)) * options.trials * len(options.methods))
     try:
         results = run_synthetic(options, progress)
