@@ -138,12 +138,15 @@ def single_direction_candidates(
         return []
     normals = interpretation_normals(lines2d, camera)
     lengths = segment_lengths(lines2d)
-    out: list[np.ndarray] = []
-    for k in range(min(len(vds), config.top_k)):
-        for R in _one_direction_candidates(vds, k, clusters, normals, lengths, config):
-            if all(rotation_error_deg(R, Q) > config.dedupe_angle_deg for Q in out):
-                out.append(R)
-    return out
+    found = [
+        R
+        for k in range(min(len(vds), config.top_k))
+        for R in _one_direction_candidates(vds, k, clusters, normals, lengths, config)
+    ]
+    if not found:
+        return []
+    R = np.array(found)
+    return [R[n] for n in _dedupe(R, np.arange(len(R)), config.dedupe_angle_deg)]
 
 
 def _one_direction_candidates(

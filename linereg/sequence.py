@@ -286,11 +286,7 @@ def rival_test(
         partial(turned_rival, T0, image, segments, camera, rc, visible),
     )
     rivals = sorted([turned, *((T, s.value) for T, s in orbits)], key=lambda r: -r[1])
-    fine = fine_config(rc)
-
-    def fine_value(T: np.ndarray) -> float:
-        return score_pose(image, segments, camera, T, fine, visible).value
-
+    fine_value = _fine_scorer(image, line_map, camera, rc, visible)
     sharp = cache(partial(fine_value, T0))  # the fix's, asked for by the rivals
 
     scores = {id(T): s for T, s in orbits}
@@ -354,24 +350,15 @@ def prediction_move(
     reward the lines that happen to fit: ``valley_move``)."""
     if not fix.rms_px <= config.max_rms_px:
         return fix
-    rc = config.register
-    precise = replace(config, register=precise_config(rc))
-    limit = fit_limit(fix.rms_px, config)
-    alt = refine_from(image, line_map, camera, predicted, config.relocalize_radius_m, precise, limit)
-    if not alt.success or differs(alt.cam_from_world, fix.cam_from_world, line_map.segments, rc.decide):
-        return fix
-    if alt.score < (1.0 - rc.decide.margin) * fix.score:
-        return fix
-    fine = fine_config(rc)
+    dc = config.register.decide
     visible = visible_mask(line_map, camera_center(fix.cam_from_world), config.relocalize_radius_m)
 
-    def fine_value(T: np.ndarray) -> float:
-        return score_pose(image, line_map.segments, camera, T, fine, visible).value
+    def same_answer(moved: Registration) -> bool:
+        T, T0 = moved.cam_from_world, fix.cam_from_world
+        return not differs(T, T0, line_map.segments, dc) and moved.score >= (1.0 - dc.margin) * fix.score
 
-    if fine_value(alt.cam_from_world) <= fine_value(fix.cam_from_world):
-        return fix
-    track = fix.timings.get("track", 0.0) + alt.timings.get("track", 0.0)
-    return replace(alt, timings={**fix.timings, "track": track})
+    limit = fit_limit(fix.rms_px, config)
+    return _sharpest_refined(image, line_map, camera, fix, [predicted], config, limit, visible, same_answer)
 
 
 def valley_move(
@@ -408,11 +395,7 @@ def valley_move(
         visible = visible_mask(line_map, camera_center(T0), config.relocalize_radius_m)
     if orbits is None:
         orbits = orbit_rivals(T0, fix.matches, image, segments, camera, rc, visible)
-    fine = fine_config(rc)
-
-    def fine_value(T: np.ndarray) -> float:
-        return score_pose(image, segments, camera, T, fine, visible).value
-
+    fine_value = _fine_scorer(image, line_map, camera, rc, visible)
     same = [
         T for T, s in orbits if s.value >= (1.0 - dc.margin) * fix.score and not differs(T, T0, segments, dc)
     ]
@@ -421,19 +404,48 @@ def valley_move(
     mine = fine_value(T0)
     if max(fine_value(T) for T in same) <= mine:
         return fix
-    precise = replace(config, register=precise_config(rc))
     starts = [T for i, T in enumerate(same) if not any(np.allclose(T, U, atol=1e-9) for U in same[:i])]
+    return _sharpest_refined(image, line_map, camera, fix, starts, config, max_rms_px, visible, mine=mine)
+
+
+def _fine_scorer(
+    image: ImageLines, line_map: LineMap, camera: Camera, config: RegisterConfig, visible: np.ndarray | None
+) -> Callable[[np.ndarray], float]:
+    """Returns cam_from_world -> the pose's score at the fine distance (``fine_config``): how closely it
+    fits the lines (the map segments ``visible``, None: all)."""
+    fine = fine_config(config)
+    return lambda T: score_pose(image, line_map.segments, camera, T, fine, visible).value
+
+
+def _sharpest_refined(
+    image: ImageLines,
+    line_map: LineMap,
+    camera: Camera,
+    fix: Registration,
+    starts: Sequence[np.ndarray],
+    config: SequenceConfig,
+    max_rms_px: float | None,
+    visible: np.ndarray | None,
+    keep: Callable[[Registration], bool] | None = None,
+    mine: float | None = None,
+) -> Registration:
+    """Returns the fix or, of the refinements from the (4, 4) ``starts`` associating at the fine distance
+    (``precise_config``) that succeed and that ``keep`` admits, the one fitting the lines closest at the
+    fine distance, when it fits them closer than the fix (whose fine score is ``mine``, if known): the end
+    of ``valley_move`` and ``prediction_move``. The refinements' tracking time is added to the fix's."""
+    fine_value = _fine_scorer(image, line_map, camera, config.register, visible)
+    precise = replace(config, register=precise_config(config.register))
     moves = [
         refine_from(image, line_map, camera, T, config.relocalize_radius_m, precise, max_rms_px)
         for T in starts
     ]
-    done = [(fine_value(m.cam_from_world), m) for m in moves if m.success]
+    done = [(fine_value(m.cam_from_world), m) for m in moves if m.success and (keep is None or keep(m))]
     if not done:
         return fix
     value, moved = max(done, key=lambda r: r[0])
-    if value <= mine:
+    if value <= (fine_value(fix.cam_from_world) if mine is None else mine):
         return fix
-    track = fix.timings.get("track", 0.0) + sum(m.timings["track"] for m in moves)
+    track = fix.timings.get("track", 0.0) + sum(m.timings.get("track", 0.0) for m in moves)
     return replace(moved, timings={**fix.timings, "track": track})
 
 
