@@ -104,8 +104,11 @@ class MapProfileConfig:
     # ... and at most this many (128 lasers, each split where its turn crosses the back): a fused cloud
     # stored in grid order has hundreds of runs; else rings by quantised elevation:
     max_rings: int = 300
-    elevation_bin_deg: float = 0.05
-    elevation_peak_share: float = 0.8  # this share of the points in at most 10 % of the elevation bins
+    elevation_bin_deg: float = 0.05  # the histogram of elevations whose peaks are the lasers' cones
+    elevation_peak_share: float = 0.8  # this share of the points beyond a metre lies on the cones ...
+    cone_share: float = 0.3  # ... each within this share of the gap between cones of one
+    cone_rounds: int = 10  # at most this many moves of the sensor origin to where the cones are sharpest ...
+    max_origin_shift_m: float = 1.0  # ... and no farther from where the rings were looked for about
     # a region's raster cell is at least this share of the ring gap at its range (the closing bridges one
     # empty cell between rings)
     ring_cell_share: float = 0.6

@@ -8,24 +8,29 @@ from linereg import LineMap
 from linereg.config import MapBuildConfig
 from linereg.errors import InvalidInputError
 from linereg.map import kinds
-from linereg.map.profile import profile_cloud
-from linereg.sim.sweep import box_quads, ground_quad, spinning_sweep
+from linereg.map.profile import profile_cloud, scan_rings
+from linereg.sim.sweep import SweepConfig, box_quads, ground_quad, spinning_sweep
 
 GROUND = -1.7  # the sensor 1.7 m above the road, at the origin of its own frame
 PAINT_Y = (-2.3, -2.0)  # a 30 cm road marking running ahead of the car, from 4 to 14 m
 
 
-@pytest.fixture(scope="module")
-def sweep():
-    quads = np.concatenate(
+def _street():
+    return np.concatenate(
         [
             ground_quad(GROUND, 60.0),
             ground_quad(GROUND + 0.002, 0.0, x=(4.0, 14.0), y=PAINT_Y),  # paint, a hair above the road
             box_quads((10.0, 2.0, GROUND), (20.0, 12.0, GROUND + 8.0)),  # a building beside the road
         ]
     )
-    reflectance = np.r_[0.15, 0.8, np.full(6, 0.4)]
-    return spinning_sweep(quads, reflectance, np.random.default_rng(0))
+
+
+REFLECTANCE = np.r_[0.15, 0.8, np.full(6, 0.4)]
+
+
+@pytest.fixture(scope="module")
+def sweep():
+    return spinning_sweep(_street(), REFLECTANCE, np.random.default_rng(0))
 
 
 def _on_line(segments, point, direction, tol_m, tol_deg):
@@ -108,3 +113,32 @@ def test_map_build_takes_the_scanner_position_from_a_pcd_header(sweep, tmp_path,
     assert line_map.metadata["profile"]["kind"] == "lidar_sweep"
     found = line_map.segments[line_map.kinds == kinds.INTENSITY] - np.tile(shift, 2)
     assert _on_line(found, np.array([0.0, PAINT_Y[0], GROUND]), np.array([1.0, 0, 0]), 0.05, 2.0).any()
+
+
+def test_a_sweep_stored_in_firing_order_off_its_frame_origin_is_found_by_its_lasers_cones():
+    """The sweep stored as fired, every laser at one azimuth before the next azimuth (no ring runs in the
+    file's order; nuScenes' 32-laser sweeps come so), in a frame whose origin lies 23 cm beside the lasers'
+    (nuScenes' LIDAR_TOP frame does): the near returns' elevations about the frame origin smear over
+    degrees, the far ones do not. The profile finds the lasers' cones, and the sensor where they are
+    sharp; the sensor's edges are found about it. (An offset along the axis the lasers turn about blurs
+    only rings seeing several ranges: a ring on flat ground keeps one elevation about any point of that
+    axis, so the test moves the frame sideways.)"""
+    config = SweepConfig()
+    points, _, ring = spinning_sweep(_street(), REFLECTANCE, np.random.default_rng(1), config)
+    azimuth = np.round(np.degrees(np.arctan2(points[:, 1], points[:, 0])) / config.azimuth_step_deg)
+    fired = np.lexsort((ring, azimuth))
+    sensor = np.array([0.03, -0.23, 0.0])
+    cloud, truth = points[fired] + sensor, ring[fired]
+    profile = profile_cloud(cloud)
+    assert (profile.kind, profile.ring_source) == ("lidar_sweep", "elevation")
+    np.testing.assert_allclose(profile.sensor_origin, sensor, atol=0.01)
+    assert profile.ring_gap_deg == pytest.approx(26.8 / 63, abs=0.02)
+    found, _, _ = scan_rings(cloud, np.zeros(3))
+    labelled = found >= 0
+    assert labelled.mean() >= 0.95
+    for k in np.unique(found[labelled]):  # each ring found is one laser's
+        assert np.bincount(truth[found == k]).max() >= 0.99 * (found == k).sum()
+    line_map = LineMap.build(cloud)
+    segments = line_map.segments - np.tile(sensor, 2)
+    corner = _on_line(segments, np.array([10.0, 2.0, 0.0]), np.array([0.0, 0.0, 1.0]), 0.05, 3.0)
+    assert corner.any()

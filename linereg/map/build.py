@@ -163,7 +163,7 @@ def _sensor_edges(
     from .intensity_edges import intensity_edges
     from .sensor_edges import sensor_edges
 
-    ring, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
+    ring, _, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
     local = points - offset
     found, found_kind = np.zeros((0, 6)), np.zeros(0, np.int8)
     if config.sensor_edges:

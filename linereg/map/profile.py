@@ -2,8 +2,8 @@
 
 Measured (``profile_cloud``): the median nearest-neighbour spacing s and its spread, the noise (rms
 distance of points to the plane of their neighbours), scan rings about the sensor origin (a spinning
-LiDAR's sweep: runs of points in scan order whose azimuth advances in small steps, else elevations
-quantised into a few values) and the gap between rings. The kind follows: ``lidar_sweep`` (rings),
+LiDAR's sweep: runs of points in scan order whose azimuth advances in small steps, else one cone of
+elevations per laser, about the point where the cones are sharpest: the sensor) and the gap between rings. The kind follows: ``lidar_sweep`` (rings),
 ``scan`` (uneven: density falls with range from a scanner), ``rgbd`` (even and dense: an RGB-D fusion,
 a room), ``map`` (even and coarser: a mobile-mapping or SLAM map, voxelised).
 
@@ -33,7 +33,8 @@ KINDS = ("empty", "lidar_sweep", "scan", "rgbd", "map")
 class CloudProfile:
     """What a cloud is: ``kind`` (one of KINDS), point count, median spacing and its 10 / 90 % quantiles
     (m), noise rms (m), rings (0: none) and the median angle between neighbouring rings (deg), how the
-    rings were found ("scan order", "elevation" or ""), the sensor origin used (or None)."""
+    rings were found ("scan order", "elevation" or ""), the sensor origin (given, or where the lasers'
+    cones are sharpest when the rings were found by elevation; None: unknown)."""
 
     kind: str
     num_points: int
@@ -79,20 +80,20 @@ def _spacing(
 
 def scan_rings(
     points: np.ndarray, origin: np.ndarray, config: MapProfileConfig | None = None
-) -> tuple[np.ndarray, str]:
-    """Returns ((P,) int64 ring of each point about (3,) ``origin``, -1 for none; how they were found:
-    "scan order", "elevation" or "" (no rings)).
+) -> tuple[np.ndarray, str, np.ndarray]:
+    """Returns ((P,) int64 ring of each point, -1 for none; how they were found: "scan order",
+    "elevation" or "" (no rings); (3,) the sensor origin they were found about).
 
     Scan order: a spinning LiDAR's points, stored as fired or ring by ring, advance in azimuth by a small
-    step; a ring is a run of such points (``ring_step_deg``) of at least ``min_ring_points``. Elevation: a
-    sensor whose lasers fire in columns stores them interleaved, but each laser keeps one elevation, so
-    most points fall in a few narrow elevation bins.
+    step; a ring is a run of such points (``ring_step_deg``) of at least ``min_ring_points``, about the
+    given ``origin``. Elevation: a sensor whose lasers fire in columns stores them interleaved, but each
+    laser sweeps one cone about the sensor (``_laser_cones``), which also places the sensor.
     """
     config = config or MapProfileConfig()
     rel = points - origin
     none = np.full(len(points), -1, dtype=np.int64)
     if len(points) < config.min_ring_points * config.min_rings:
-        return none, ""
+        return none, "", origin
     azimuth = np.arctan2(rel[:, 1], rel[:, 0])
     signed = np.angle(np.exp(1j * np.diff(azimuth)))
     step = np.abs(signed)
@@ -114,28 +115,111 @@ def scan_rings(
     if config.min_rings <= long.sum() <= config.max_rings and lengths[long].sum() >= 0.8 * len(points):
         run = np.repeat(np.arange(len(starts)), lengths)
         ring = np.cumsum(long) - 1
-        return np.where(long[run], ring[run], -1).astype(np.int64), "scan order"
-    elevation = np.degrees(np.arctan2(rel[:, 2], np.hypot(rel[:, 0], rel[:, 1])))
-    far = np.linalg.norm(rel, axis=1) > 1.0  # near the sensor its lasers' offsets blur the elevations
-    edges = np.arange(elevation[far].min(), elevation[far].max() + 2 * config.elevation_bin_deg,
-                      config.elevation_bin_deg) if far.any() else np.zeros(0)  # fmt: skip
-    if len(edges) < 20:
-        return none, ""
-    hist, _ = np.histogram(elevation[far], edges)
-    top = np.sort(hist)[::-1]
-    if np.cumsum(top)[len(top) // 10] < config.elevation_peak_share * far.sum():
-        return none, ""
-    # the rings are the runs of full bins (a bin above a tenth of the median full bin)
-    full = hist > 0.1 * np.median(hist[hist > 0])
-    label = np.cumsum(np.r_[full[0], full[1:] & ~full[:-1]]) - 1
-    which = np.clip(np.searchsorted(edges, elevation, side="right") - 1, 0, len(hist) - 1)
-    ring = np.where(full[which] & far, label[which], -1)
-    counts = np.bincount(ring[ring >= 0], minlength=int(label.max()) + 1)
+        return np.where(long[run], ring[run], -1).astype(np.int64), "scan order", origin
+    cones = _laser_cones(points, origin, config)
+    if cones is None:
+        return none, "", origin
+    return cones[0], "elevation", cones[1]
+
+
+def _laser_cones(
+    points: np.ndarray, origin: np.ndarray, config: MapProfileConfig
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Returns ((P,) int64 ring of each point, -1 for none; (3,) the sensor origin) of a sweep whose lasers
+    keep fixed elevations, or None when the points' elevations do not fall on ``min_rings`` such cones.
+
+    Each laser sweeps a cone about the sensor: seen from there its returns share one elevation. A cloud
+    whose frame origin lies off the lasers' (a sensor frame placed at the housing's base or centre, a
+    vehicle's frame) blurs the near returns' elevations by the offset over the range (nuScenes' 32-laser
+    sweep: 0.22 m, the near ground's rings smeared over degrees) while the far ones stay sharp. So the
+    cones' elevations are taken first from the far half of the points, every point within ``cone_share``
+    of the ring gap of one is given to it, the origin moved to where the given points' elevations match
+    their cones best (Gauss-Newton), and again, from all points, until the origin stays put. Accepted when
+    ``elevation_peak_share`` of the points beyond a metre lie on a cone of ``min_ring_points``."""
+    start = origin
+    cones = nearest = given = distance = np.zeros(0)
+    for round_ in range(config.cone_rounds):
+        rel = points - origin
+        horizontal = np.hypot(rel[:, 0], rel[:, 1])
+        elevation = np.arctan2(rel[:, 2], horizontal)
+        distance = np.linalg.norm(rel, axis=1)
+        far = distance > 1.0  # within a metre the lasers' own spread on the housing blurs everything
+        if round_ == 0:
+            far &= distance >= np.median(distance[far]) if far.any() else far
+        found = _cone_elevations(np.degrees(elevation[far]), config)
+        if found is None:
+            return None
+        cones = found
+        gap = float(np.median(np.diff(cones)))
+        nearest, off = _nearest(np.degrees(elevation), cones)
+        given = (np.abs(off) <= config.cone_share * gap) & (distance > 1.0)
+        if round_ == config.cone_rounds - 1:
+            break
+        # d elevation / d origin of a point at rel = (x, y, z) about the origin
+        r2 = np.maximum(distance**2, 1e-12)
+        h = np.maximum(horizontal, 1e-9)
+        J = np.c_[rel[:, 2] * rel[:, 0] / (h * r2), rel[:, 2] * rel[:, 1] / (h * r2), -h / r2][given]
+        e = (elevation - np.radians(cones[nearest]))[given]
+        H = J.T @ J
+        move = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(3), J.T @ e)
+        origin = origin + move
+        if np.linalg.norm(origin - start) > config.max_origin_shift_m:
+            return None
+        if np.linalg.norm(move) < 1e-3:
+            break
+    if config.cone_rounds < 1:
+        return None
+    counts = np.bincount(nearest[given], minlength=len(cones))
+    kept = given & (counts[nearest] >= config.min_ring_points)
     if (counts >= config.min_ring_points).sum() < config.min_rings:
-        return none, ""
-    return np.where(
-        (ring >= 0) & (counts[np.maximum(ring, 0)] >= config.min_ring_points), ring, -1
-    ), "elevation"
+        return None
+    if kept.sum() < config.elevation_peak_share * max((distance > 1.0).sum(), 1):
+        return None
+    label = np.cumsum(counts >= config.min_ring_points) - 1
+    return np.where(kept, label[nearest], -1).astype(np.int64), origin
+
+
+def _nearest(values: np.ndarray, sorted_values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((N,) index of the nearest of the ascending (K,) ``sorted_values`` to each value, (N,)
+    value minus it)."""
+    right = np.clip(np.searchsorted(sorted_values, values), 1, len(sorted_values) - 1)
+    left = right - 1
+    pick = np.where(values - sorted_values[left] <= sorted_values[right] - values, left, right)
+    if len(sorted_values) == 1:
+        pick = np.zeros(len(values), dtype=np.int64)
+    return pick, values - sorted_values[pick]
+
+
+def _cone_elevations(elevation_deg: np.ndarray, config: MapProfileConfig) -> np.ndarray | None:
+    """Returns the ascending elevations (deg) of the peaks of a histogram of elevations (runs of bins
+    above a tenth of the median occupied bin, each at its weighted mean; peaks closer than half the
+    median spacing merged), or None for fewer than ``min_rings``."""
+    if len(elevation_deg) == 0:
+        return None
+    b = config.elevation_bin_deg
+    edges = np.arange(elevation_deg.min(), elevation_deg.max() + 2 * b, b)
+    if len(edges) < 20:
+        return None
+    hist, _ = np.histogram(elevation_deg, edges)
+    full = hist > 0.1 * np.median(hist[hist > 0])
+    run = np.cumsum(np.r_[full[0], full[1:] & ~full[:-1]]) - 1
+    centre = 0.5 * (edges[1:] + edges[:-1])
+    weight = np.bincount(run[full], hist[full], minlength=run.max() + 1)
+    mean = np.bincount(run[full], hist[full] * centre[full], minlength=run.max() + 1)
+    ok = weight > 0
+    peaks, weight = mean[ok] / weight[ok], weight[ok]
+    if len(peaks) < config.min_rings:
+        return None
+    spacing = float(np.median(np.diff(peaks)))
+    merged, mass = [peaks[0]], [weight[0]]
+    for p, w in zip(peaks[1:], weight[1:], strict=True):
+        if p - merged[-1] < 0.5 * spacing:
+            merged[-1] = (merged[-1] * mass[-1] + p * w) / (mass[-1] + w)
+            mass[-1] += w
+        else:
+            merged.append(p)
+            mass.append(w)
+    return np.array(merged) if len(merged) >= config.min_rings else None
 
 
 def ring_gap_deg(points: np.ndarray, ring: np.ndarray, origin: np.ndarray, sample: int = 5000) -> float:
@@ -170,9 +254,9 @@ def profile_cloud(
         return CloudProfile("empty", 0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, "", None)
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64).reshape(3)
     spacing, p10, p90, noise = _spacing(points, config)
-    ring, source = scan_rings(points, origin, config)
+    ring, source, found = scan_rings(points, origin, config)
     rings = int(ring.max()) + 1 if source else 0
-    gap = ring_gap_deg(points, ring, origin) if rings else 0.0
+    gap = ring_gap_deg(points, ring, found) if rings else 0.0
     if gap <= 0.0:  # runs of points at one elevation (a grid's rows) are no laser rings
         rings, source = 0, ""
     if rings:
@@ -182,7 +266,7 @@ def profile_cloud(
     else:
         kind = "rgbd" if spacing <= config.dense_spacing_m else "map"
     known = rings > 0 or sensor_origin is not None
-    origin_out = tuple(float(v) for v in origin) if known else None
+    origin_out = tuple(float(v) for v in (found if rings else origin)) if known else None
     return CloudProfile(kind, len(points), spacing, p10, p90, noise, rings, gap, source, origin_out)  # type: ignore[arg-type]
 
 
