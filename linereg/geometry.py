@@ -62,6 +62,21 @@ def nearest_rotation(M: np.ndarray) -> np.ndarray:
     return U @ D @ Vt
 
 
+# a rotation read from a pose file holds only the digits written: SUN3D's pose.txt (and TUM's, COLMAP's
+# images.txt with 6-7 digits) make R R^T differ from I by up to ~5e-6; anything this close is meant as one
+ROTATION_TOLERANCE = 1e-3
+
+
+def rigid_rotation(R: np.ndarray) -> np.ndarray | None:
+    """Returns the proper rotation a (3, 3) matrix was meant to be: itself, or ``nearest_rotation`` when it
+    is one written to a few digits (``R R^T`` within ``ROTATION_TOLERANCE`` of I, det > 0); None when it is
+    no rotation (a reflection, a scaling, a shear)."""
+    R = np.asarray(R, dtype=np.float64)
+    if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
+        return None
+    return R if np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-12) else nearest_rotation(R)
+
+
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:
     """Returns the angle in degrees of ``R_a^T R_b`` (paper: ``acos((trace(R_a^T R_b) - 1) / 2)``).
 

@@ -169,6 +169,26 @@ def test_prior_fields_are_checked():
         linereg.Prior(gravity=(0.0, 0.0, 0.0))
     with pytest.raises(linereg.InvalidInputError, match="rotation"):
         linereg.Prior(cam_from_world=np.diag([1.0, 1.0, -1.0, 1.0]))
+    with pytest.raises(linereg.InvalidInputError, match="rotation"):
+        linereg.Prior(cam_from_world=np.diag([1.0, 1.0, 1.01, 1.0]))  # a scaling, no rotation
+    with pytest.raises(linereg.InvalidInputError, match="last row"):
+        linereg.Prior(cam_from_world=np.r_[np.eye(4)[:3], [[0.0, 0.0, 1.0, 1.0]]])
+
+
+def test_a_prior_pose_written_to_a_few_digits_is_taken_as_the_nearest_rotation():
+    """SUN3D's pose.txt (like TUM's and COLMAP's text files) keeps 6-7 digits: its rotations are orthonormal
+    to a few 1e-6, and a guess made from one was refused (two of the six SUN3D photos in ``bench real
+    --prior``)."""
+    from linereg.geometry import rotation_from_vector
+
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = rotation_from_vector(np.array([0.3, -1.1, 0.4])), (1.0, 2.0, 3.0)
+    written = np.round(T, 5)
+    assert np.abs(written[:3, :3] @ written[:3, :3].T - np.eye(3)).max() > 1e-6
+    prior = linereg.Prior(cam_from_world=written, sigma_rot_deg=5.0, radius_m=0.5)
+    R = prior.cam_from_world[:3, :3]
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    np.testing.assert_allclose(prior.cam_from_world, T, atol=1e-4)
 
 
 def test_the_maps_own_accuracy_is_part_of_the_pose_covariance():
