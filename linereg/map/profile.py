@@ -3,9 +3,10 @@
 Measured (``profile_cloud``): the median nearest-neighbour spacing s and its spread, the noise (rms
 distance of points to the plane of their neighbours), scan rings about the sensor origin (a spinning
 LiDAR's sweep: runs of points in scan order whose azimuth advances in small steps, else one cone of
-elevations per laser, about the point where the cones are sharpest: the sensor) and the gap between rings. The kind follows: ``lidar_sweep`` (rings),
-``scan`` (uneven: density falls with range from a scanner), ``rgbd`` (even and dense: an RGB-D fusion,
-a room), ``map`` (even and coarser: a mobile-mapping or SLAM map, voxelised).
+elevations per laser, about the point where the cones are sharpest: the sensor) and the gap between
+rings. The kind follows: ``lidar_sweep`` (rings), ``scan`` (uneven: density falls with range from a
+scanner), ``rgbd`` (even and dense: an RGB-D fusion, a room), ``map`` (even and coarser: a mobile-mapping
+or SLAM map, voxelised).
 
 Chosen (``adapted_config``): the shortest segment ``12 s`` and the smallest region ``(15 s)^2``, clipped to
 [0.15, 0.3] m and [0.03, 0.1] m^2 (a region must span some 15 points a side to give straight contours; a
@@ -144,8 +145,8 @@ def _laser_cones(
         elevation = np.arctan2(rel[:, 2], horizontal)
         distance = np.linalg.norm(rel, axis=1)
         far = distance > 1.0  # within a metre the lasers' own spread on the housing blurs everything
-        if round_ == 0:
-            far &= distance >= np.median(distance[far]) if far.any() else far
+        if round_ == 0 and far.any():  # first the far half, whose elevations an offset origin hardly blurs
+            far &= distance >= np.median(distance[far])
         found = _cone_elevations(np.degrees(elevation[far]), config)
         if found is None:
             return None
