@@ -9,28 +9,14 @@ from linereg.config import MapBuildConfig
 from linereg.errors import InvalidInputError
 from linereg.map import kinds
 from linereg.map.profile import profile_cloud, scan_rings
-from linereg.sim.sweep import SweepConfig, box_quads, ground_quad, spinning_sweep
+from linereg.sim.sweep import STREET_GROUND, STREET_PAINT_Y, SweepConfig, spinning_sweep, street
 
-GROUND = -1.7  # the sensor 1.7 m above the road, at the origin of its own frame
-PAINT_Y = (-2.3, -2.0)  # a 30 cm road marking running ahead of the car, from 4 to 14 m
-
-
-def _street():
-    return np.concatenate(
-        [
-            ground_quad(GROUND, 60.0),
-            ground_quad(GROUND + 0.002, 0.0, x=(4.0, 14.0), y=PAINT_Y),  # paint, a hair above the road
-            box_quads((10.0, 2.0, GROUND), (20.0, 12.0, GROUND + 8.0)),  # a building beside the road
-        ]
-    )
-
-
-REFLECTANCE = np.r_[0.15, 0.8, np.full(6, 0.4)]
+GROUND, PAINT_Y = STREET_GROUND, STREET_PAINT_Y
 
 
 @pytest.fixture(scope="module")
 def sweep():
-    return spinning_sweep(_street(), REFLECTANCE, np.random.default_rng(0))
+    return spinning_sweep(*street(), np.random.default_rng(0))
 
 
 def _on_line(segments, point, direction, tol_m, tol_deg):
@@ -124,7 +110,7 @@ def test_a_sweep_stored_in_firing_order_off_its_frame_origin_is_found_by_its_las
     only rings seeing several ranges: a ring on flat ground keeps one elevation about any point of that
     axis, so the test moves the frame sideways.)"""
     config = SweepConfig()
-    points, _, ring = spinning_sweep(_street(), REFLECTANCE, np.random.default_rng(1), config)
+    points, _, ring = spinning_sweep(*street(), np.random.default_rng(1), config)
     azimuth = np.round(np.degrees(np.arctan2(points[:, 1], points[:, 0])) / config.azimuth_step_deg)
     fired = np.lexsort((ring, azimuth))
     sensor = np.array([0.03, -0.23, 0.0])

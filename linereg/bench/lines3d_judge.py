@@ -34,6 +34,7 @@ CREASE_DEG = 30.0
 NORMAL_NEIGHBOURS = 24
 MAX_CURVATURE = 0.02  # lambda_min / sum: a smooth patch whose normal is fit to compare
 MIN_EDGE_PX = 15  # edge pixels in a smaller blob are specks, no line
+MAX_RING_SPLAT = 20  # px: a sweep's splats reach at most this far up and down (``render``)
 
 
 def project(segments: np.ndarray, camera: Camera, cam_from_world: np.ndarray) -> np.ndarray:
@@ -164,10 +165,11 @@ def ceiling(
     """Returns {ceiling, covered, edge_mask}: the share of the (N, 4) image segments' length within
     DISTANCE_PX of a depth discontinuity or crease of the (P, 3) cloud rendered at the pose, the share
     lying where the cloud covers the image, and the (H, W) bool edge mask."""
-    depth, points, normals = render(cloud, camera, cam_from_world)
     from ..map.profile import profile_cloud
 
-    noise_m = profile_cloud(cloud).noise_m
+    profile = profile_cloud(cloud)
+    noise_m = profile.noise_m
+    depth, points, normals = render(cloud, camera, cam_from_world, profile.ring_gap_deg)
     h, w = depth.shape
     valid = np.isfinite(depth)
     edge = np.zeros((h, w), dtype=bool)
@@ -209,10 +211,16 @@ def ceiling(
     return {"ceiling": on, "covered": cov, "edge_mask": edge}
 
 
-def render(cloud: np.ndarray, camera: Camera, cam_from_world: np.ndarray) -> tuple[np.ndarray, ...]:
+def render(
+    cloud: np.ndarray, camera: Camera, cam_from_world: np.ndarray, ring_gap_deg: float = 0.0
+) -> tuple[np.ndarray, ...]:
     """Returns ((H, W) depth (inf: no point), (H, W, 3) camera-frame point, (H, W, 3) unit normal facing the
     camera) of the (P, 3) cloud as a z-buffer of splats half the local spacing wide; points with fewer
-    than 4 neighbours within 3 spacings (strays) are left out, normals by PCA of 16 neighbours."""
+    than 4 neighbours within 3 spacings (strays) are left out, normals by PCA of 16 neighbours. A single
+    sweep's points (``ring_gap_deg`` > 0: the angle between its rings) are splatted half that angle tall
+    too (at most ``MAX_RING_SPLAT`` px): a point's neighbours along its ring are near, the next ring's
+    may be tens of pixels away (a 32-laser sweep's rings lie 1.3 deg apart: ~30 px), and splats as small
+    as the ring's spacing leave the image striped, with hardly a depth edge between its stripes."""
     from scipy.spatial import cKDTree
 
     R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
@@ -234,14 +242,16 @@ def render(cloud: np.ndarray, camera: Camera, cam_from_world: np.ndarray) -> tup
     normals *= np.where(np.einsum("nk,nk->n", normals, x[idx]) > 0, -1.0, 1.0)[:, None]
     z = x[idx, 2]
     radius = np.clip(np.rint(0.5 * camera.fx * spacing / z), 0, 6).astype(np.int64)
+    tall = int(min(np.rint(0.5 * camera.fy * np.radians(ring_gap_deg)), MAX_RING_SPLAT))
+    height = np.maximum(radius, tall)
     h, w = camera.height, camera.width
     best = np.full(h * w, np.inf)
     writes = []
-    for r in np.unique(radius):
-        sel = np.flatnonzero(radius == r)
+    for r, rv in np.unique(np.c_[radius, height], axis=0):
+        sel = np.flatnonzero((radius == r) & (height == rv))
         px0, py0 = np.rint(uv[idx[sel], 0]).astype(np.int64), np.rint(uv[idx[sel], 1]).astype(np.int64)
         for dx in range(-r, r + 1):
-            for dy in range(-r, r + 1):
+            for dy in range(-rv, rv + 1):
                 px, py = px0 + dx, py0 + dy
                 ok = (px >= 0) & (px < w) & (py >= 0) & (py < h)
                 flat = py[ok] * w + px[ok]

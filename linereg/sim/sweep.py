@@ -76,3 +76,20 @@ def spinning_sweep(
     value = np.asarray(reflectance, dtype=np.float64)[face] + rng.normal(0.0, config.intensity_noise, len(t))
     ring = np.repeat(np.arange(config.rings), len(azimuth))
     return points[ok], value[ok], ring[ok]
+
+
+STREET_GROUND = -1.7  # ``street``: the sensor 1.7 m above the road, at the origin of its own frame
+STREET_PAINT_Y = (-2.3, -2.0)  # ... a 30 cm road marking running ahead of the car, from 4 to 14 m
+
+
+def street() -> tuple[np.ndarray, np.ndarray]:
+    """Returns ((Q, 4, 3) quads, (Q,) reflectances) of a road seen from a car: the ground 1.7 m below the
+    sensor, a road marking a hair above it, a building beside the road (x 10-20 m, y 2-12 m, 8 m tall)."""
+    quads = np.concatenate(
+        [
+            ground_quad(STREET_GROUND, 60.0),
+            ground_quad(STREET_GROUND + 0.002, 0.0, x=(4.0, 14.0), y=STREET_PAINT_Y),
+            box_quads((10.0, 2.0, STREET_GROUND), (20.0, 12.0, STREET_GROUND + 8.0)),
+        ]
+    )
+    return quads, np.r_[0.15, 0.8, np.full(6, 0.4)]
