@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
+from .errors import InvalidInputError
 
 
 def make_cam_from_world(R: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -72,9 +73,30 @@ def rigid_rotation(R: np.ndarray) -> np.ndarray | None:
     is one written to a few digits (``R R^T`` within ``ROTATION_TOLERANCE`` of I, det > 0); None when it is
     no rotation (a reflection, a scaling, a shear)."""
     R = np.asarray(R, dtype=np.float64)
-    if np.abs(R @ R.T - np.eye(3)).max() > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
+    off = np.abs(R @ R.T - np.eye(3)).max()
+    if off > ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
         return None
-    return R if np.allclose(R @ R.T, np.eye(3), rtol=0.0, atol=1e-12) else nearest_rotation(R)
+    return R if off <= 1e-12 else nearest_rotation(R)
+
+
+def check_rigid(value: object, name: str) -> np.ndarray:
+    """Returns ``value`` as a (4, 4) float64 rigid transform (a rotation written to a few digits taken as the
+    nearest rotation: ``rigid_rotation``), or raises InvalidInputError naming it."""
+    try:
+        T = np.array(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InvalidInputError(f"{name} must be a numeric (4, 4) matrix") from None
+    if T.shape != (4, 4) or not np.isfinite(T).all():
+        raise InvalidInputError(f"{name} must be a finite (4, 4) matrix, got shape {T.shape}")
+    R = rigid_rotation(T[:3, :3])
+    if R is None:
+        raise InvalidInputError(
+            f"{name} is not rigid: its rotation is not orthonormal (to {ROTATION_TOLERANCE:g}) with det +1"
+        )
+    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
+        raise InvalidInputError(f"{name} is not rigid: its last row must be 0 0 0 1")
+    T[:3, :3] = R
+    return T
 
 
 def rotation_error_deg(R_a: np.ndarray, R_b: np.ndarray) -> float:

@@ -18,7 +18,7 @@ import numpy as np
 from .camera import Camera
 from .config import LineDetectConfig, RegisterConfig
 from .errors import InvalidInputError
-from .geometry import ROTATION_TOLERANCE, invert, line_coefficients, rigid_rotation
+from .geometry import check_rigid, invert, line_coefficients
 from .line_factor import LineProjection, line_factor
 from .lines2d import detect
 from .refine import fragments, residual_variance, robust_noise
@@ -50,24 +50,9 @@ def relative_pose(cam_a_from_world: np.ndarray, cam_b_from_world: np.ndarray) ->
 
 
 def check_relative_pose(value: object, name: str) -> np.ndarray:
-    """Returns ``value`` as a (4, 4) float64 rigid transform (a rotation written to a few digits taken as the
-    nearest rotation: ``geometry.rigid_rotation``), or raises InvalidInputError naming it."""
-    try:
-        T = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise InvalidInputError(f"{name} must be a numeric (4, 4) matrix") from None
-    if T.shape != (4, 4) or not np.isfinite(T).all():
-        raise InvalidInputError(f"{name} must be a finite (4, 4) matrix, got shape {T.shape}")
-    R = rigid_rotation(T[:3, :3])
-    if R is None:
-        raise InvalidInputError(
-            f"{name} is not rigid: its rotation is not orthonormal (to {ROTATION_TOLERANCE:g}) with det +1"
-        )
-    if not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-        raise InvalidInputError(f"{name} is not rigid: its last row must be 0 0 0 1")
-    T = T.copy()
-    T[:3, :3] = R
-    return T
+    """Returns ``value`` as a (4, 4) float64 rigid transform (``geometry.check_rigid``), or raises
+    InvalidInputError naming it."""
+    return check_rigid(value, name)
 
 
 def check_covariance(value: object, name: str) -> np.ndarray:

@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import InvalidInputError
-from .geometry import ROTATION_TOLERANCE, camera_center, rigid_rotation, rotation_error_deg
+from .geometry import camera_center, check_rigid, rotation_error_deg
 
 
 @dataclass(frozen=True)
@@ -24,7 +24,7 @@ class Prior:
 
     position: (3,) camera centre within ``radius_m``. cam_from_world: (4, 4) a whole pose, its rotation
     within ``sigma_rot_deg`` (default 5) and its centre within ``radius_m`` (default 3 x ``sigma_pos_m``);
-    a rotation written to a few digits is taken as the nearest rotation (``geometry.rigid_rotation``).
+    a rotation written to a few digits is taken as the nearest rotation (``geometry.check_rigid``).
     gravity: (3,) direction of gravity (down) in the camera frame, within ``gravity_sigma_deg``; world_down:
     the map's down direction (default (0, 0, -1): z up).
     """
@@ -40,17 +40,7 @@ class Prior:
 
     def __post_init__(self) -> None:
         if self.cam_from_world is not None:
-            T = np.asarray(self.cam_from_world, dtype=np.float64)
-            if T.shape != (4, 4) or not np.isfinite(T).all():
-                raise InvalidInputError("prior cam_from_world must be a finite (4, 4) matrix")
-            R = rigid_rotation(T[:3, :3])
-            if R is None or not np.allclose(T[3], [0.0, 0.0, 0.0, 1.0]):
-                raise InvalidInputError(
-                    "prior cam_from_world must be rigid: a rotation (orthonormal to "
-                    f"{ROTATION_TOLERANCE:g}, det +1) and a last row 0 0 0 1"
-                )
-            T = T.copy()
-            T[:3, :3] = R
+            T = check_rigid(self.cam_from_world, "prior cam_from_world")
             object.__setattr__(self, "cam_from_world", T)
             if self.position is None:
                 object.__setattr__(self, "position", camera_center(T))

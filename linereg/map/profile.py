@@ -137,6 +137,8 @@ def _laser_cones(
     of the ring gap of one is given to it, the origin moved to where the given points' elevations match
     their cones best (Gauss-Newton), and again, from all points, until the origin stays put. Accepted when
     ``elevation_peak_share`` of the points beyond a metre lie on a cone of ``min_ring_points``."""
+    if config.cone_rounds < 1:
+        return None
     start = origin
     cones = nearest = given = distance = np.zeros(0)
     for round_ in range(config.cone_rounds):
@@ -157,10 +159,11 @@ def _laser_cones(
         if round_ == config.cone_rounds - 1:
             break
         # d elevation / d origin of a point at rel = (x, y, z) about the origin
-        r2 = np.maximum(distance**2, 1e-12)
-        h = np.maximum(horizontal, 1e-9)
-        J = np.c_[rel[:, 2] * rel[:, 0] / (h * r2), rel[:, 2] * rel[:, 1] / (h * r2), -h / r2][given]
-        e = (elevation - np.radians(cones[nearest]))[given]
+        x, y, z = rel[given].T
+        r2 = np.maximum(distance[given] ** 2, 1e-12)
+        h = np.maximum(horizontal[given], 1e-9)
+        J = np.c_[z * x / (h * r2), z * y / (h * r2), -h / r2]
+        e = elevation[given] - np.radians(cones[nearest[given]])
         H = J.T @ J
         move = -np.linalg.solve(H + 1e-9 * np.trace(H) * np.eye(3), J.T @ e)
         origin = origin + move
@@ -168,8 +171,6 @@ def _laser_cones(
             return None
         if np.linalg.norm(move) < 1e-3:
             break
-    if config.cone_rounds < 1:
-        return None
     counts = np.bincount(nearest[given], minlength=len(cones))
     kept = given & (counts[nearest] >= config.min_ring_points)
     if (counts >= config.min_ring_points).sum() < config.min_rings:
@@ -181,13 +182,11 @@ def _laser_cones(
 
 
 def _nearest(values: np.ndarray, sorted_values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Returns ((N,) index of the nearest of the ascending (K,) ``sorted_values`` to each value, (N,)
+    """Returns ((N,) index of the nearest of the ascending (K >= 2,) ``sorted_values`` to each value, (N,)
     value minus it)."""
     right = np.clip(np.searchsorted(sorted_values, values), 1, len(sorted_values) - 1)
     left = right - 1
     pick = np.where(values - sorted_values[left] <= sorted_values[right] - values, left, right)
-    if len(sorted_values) == 1:
-        pick = np.zeros(len(values), dtype=np.int64)
     return pick, values - sorted_values[pick]
 
 

@@ -22,23 +22,15 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONVENTION, cam_entry, edgecheck, overlay, write_ply
+from common import CONVENTION, cam_entry, edgecheck, overlay, read_pcd_header, write_ply
 
 CLOUDS = [(1, 10), (2, 12), (2, 13)]  # (MID-100 unit, station) present in the repo
 IMAGES = [(0, 0), (0, 21), (0, 1), (1, 0), (1, 21)]  # (camera 0=left 1=right, station)
 
 
 def read_pcd_binary(path):
-    hdr = {}
     with open(path, "rb") as f:
-        while True:
-            line = f.readline().decode("ascii").strip()
-            if not line or line.startswith("#"):
-                continue
-            k, *v = line.split()
-            hdr[k] = v
-            if k == "DATA":
-                break
+        hdr = read_pcd_header(f)
         body = f.read()
     assert (
         hdr["DATA"][0] == "binary"

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONVENTION, cam_entry, edgecheck, overlay, write_ply
+from common import CONVENTION, cam_entry, edgecheck, overlay, read_pcd_header, write_ply
 
 
 def lzf_decompress(src, out_len):
@@ -47,16 +47,8 @@ def lzf_decompress(src, out_len):
 
 def read_pcd(path):
     """PCD v0.7 reader (ascii / binary / binary_compressed), returns {field: array}."""
-    hdr = {}
     with open(path, "rb") as f:
-        while True:
-            line = f.readline().decode("ascii").strip()
-            if not line or line.startswith("#"):
-                continue
-            k, *v = line.split()
-            hdr[k] = v
-            if k == "DATA":
-                break
+        hdr = read_pcd_header(f)
         body = f.read()
     fields, n = hdr["FIELDS"], int(hdr["POINTS"][0])
     types = [

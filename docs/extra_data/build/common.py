@@ -26,6 +26,20 @@ def write_ply(path, xyz, extra=None):
         f.write(rec.tobytes())
 
 
+def read_pcd_header(f):
+    """Reads a PCD header from the binary file f up to its DATA line; returns {key: [values]} (f then holds
+    the body)."""
+    hdr = {}
+    while True:
+        line = f.readline().decode("ascii").strip()
+        if not line or line.startswith("#"):
+            continue
+        k, *v = line.split()
+        hdr[k] = v
+        if k == "DATA":
+            return hdr
+
+
 def read_ply_xyz(path):
     with open(path, "rb") as f:
         n, props = 0, []
