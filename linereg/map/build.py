@@ -28,7 +28,7 @@ from . import kinds
 from .collinear import along
 from .lines3d import check_points, lines_and_surfaces
 from .planes import Planes, segment_planes, voxel_downsample
-from .profile import CloudProfile, adapted_config, profile_cloud, scan_rings
+from .profile import CloudProfile, adapted_config, profile_and_rings
 from .surfaces import Surfaces, empty_surfaces, shift_surfaces
 
 if TYPE_CHECKING:
@@ -84,7 +84,7 @@ def extract_map(
             raise InvalidInputError(f"sensor_origin must be finite, got {sensor_origin}")
     if progress:
         progress("profile")
-    profile = profile_cloud(points, sensor_origin, config.profile)
+    profile, ring = profile_and_rings(points, sensor_origin, config.profile)
     lines_config = adapted_config(profile, config.lines3d, config.profile) if config.adapt else config.lines3d
     if len(points) == 0:
         return _empty(profile, lines_config, "the cloud holds no points")
@@ -108,7 +108,7 @@ def extract_map(
             notes += ("intensity edges: found only along a single sweep's rings, and this cloud has none",)
         if (config.sensor_edges or with_intensity) and sensor is not None and profile.rings:
             sensed = run(
-                _sensor_edges, points, intensity if with_intensity else None, offset, profile, sensor, config
+                _sensor_edges, points, ring, intensity if with_intensity else None, offset, sensor, config
             )
         edges, at_points = None, None
         if config.point_edges or (config.point_edges is None and profile.kind in POINT_EDGE_KINDS):
@@ -151,19 +151,19 @@ def extract_map(
 
 def _sensor_edges(
     points: np.ndarray,
+    ring: np.ndarray,
     intensity: np.ndarray | None,
     offset: np.ndarray,
-    profile: CloudProfile,
     sensor: np.ndarray,
     config: MapBuildConfig,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((K, 6) local segments, (K,) int8 kinds) of a sweep's occluding contours and ring-curvature
     edges (``sensor_edges``, if ``config.sensor_edges``) and of its (P,) ``intensity``'s steps
-    (``intensity_edges``, when given) of its (P, 3) points in the map frame, ``offset`` their local origin."""
+    (``intensity_edges``, when given) of its (P, 3) points in the map frame with their (P,) rings (the
+    profile's), ``offset`` their local origin."""
     from .intensity_edges import intensity_edges
     from .sensor_edges import sensor_edges
 
-    ring, _, _ = scan_rings(points, np.asarray(profile.sensor_origin), config.profile)
     local = points - offset
     found, found_kind = np.zeros((0, 6)), np.zeros(0, np.int8)
     if config.sensor_edges:

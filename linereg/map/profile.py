@@ -248,10 +248,18 @@ def profile_cloud(
 ) -> CloudProfile:
     """Returns the CloudProfile of (P, 3) points; rings are looked for about ``sensor_origin`` (None: the
     origin of the points' frame, where a single sweep in its sensor's frame has its sensor)."""
+    return profile_and_rings(points, sensor_origin, config)[0]
+
+
+def profile_and_rings(
+    points: np.ndarray, sensor_origin: np.ndarray | None = None, config: MapProfileConfig | None = None
+) -> tuple[CloudProfile, np.ndarray]:
+    """Returns (``profile_cloud``'s CloudProfile, (P,) int64 ring of each point, -1 for none: all -1 when
+    the profile has no rings), so that a map build finds the rings once."""
     config = config or MapProfileConfig()
     points = check_points(points)
     if len(points) == 0:
-        return CloudProfile("empty", 0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, "", None)
+        return CloudProfile("empty", 0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, "", None), np.zeros(0, np.int64)
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64).reshape(3)
     spacing, p10, p90, noise = _spacing(points, config)
     ring, source, found = scan_rings(points, origin, config)
@@ -259,6 +267,7 @@ def profile_cloud(
     gap = ring_gap_deg(points, ring, found) if rings else 0.0
     if gap <= 0.0:  # runs of points at one elevation (a grid's rows) are no laser rings
         rings, source = 0, ""
+        ring = np.full(len(points), -1, dtype=np.int64)
     if rings:
         kind = "lidar_sweep"
     elif p90 > config.uneven_ratio * max(p10, 1e-9):
@@ -267,7 +276,8 @@ def profile_cloud(
         kind = "rgbd" if spacing <= config.dense_spacing_m else "map"
     known = rings > 0 or sensor_origin is not None
     origin_out = tuple(float(v) for v in (found if rings else origin)) if known else None
-    return CloudProfile(kind, len(points), spacing, p10, p90, noise, rings, gap, source, origin_out)  # type: ignore[arg-type]
+    profile = CloudProfile(kind, len(points), spacing, p10, p90, noise, rings, gap, source, origin_out)  # type: ignore[arg-type]
+    return profile, ring
 
 
 def adapted_config(
