@@ -80,3 +80,63 @@ def test_the_at_truth_row_is_what_each_frames_lines_allow_from_its_ground_truth(
     assert row["within"] == pytest.approx(1 / 3)  # frame 0 of the three
     assert np.allclose(row["poses"][0], truth[0], atol=1e-6)
     assert np.allclose(row["poses"][1], seen[1], atol=1e-4)  # where its lines are, not its ground truth
+
+
+def _sequence_set(folder, frames: int) -> None:
+    """Writes a set folder: a box room's cloud.ply (ASCII PLY) and a sequence of ``frames`` grey frames."""
+    import json
+
+    import cv2
+    import numpy as np
+
+    g = np.arange(0.0, 2.0001, 0.05)
+    a, b = np.meshgrid(g, g)
+    faces = []
+    for axis in range(3):
+        for side in (0.0, 2.0):
+            p = np.zeros((a.size, 3))
+            p[:, axis] = side
+            p[:, (axis + 1) % 3], p[:, (axis + 2) % 3] = a.ravel(), b.ravel()
+            faces.append(p)
+    points = np.unique(np.round(np.vstack(faces), 6), axis=0)
+    header = f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\n"
+    header += "property float z\nend_header\n"
+    folder.mkdir(parents=True)
+    (folder / "cloud.ply").write_text(
+        header + "\n".join(" ".join(f"{v:.6f}" for v in p) for p in points) + "\n"
+    )
+    (folder / "sequence").mkdir()
+    entries = []
+    for k in range(frames):
+        cv2.imwrite(str(folder / "sequence" / f"f{k}.png"), np.full((48, 64), 128, np.uint8))
+        pose = np.eye(4)
+        pose[:3, 3] = [-1.0 - 0.01 * k, -1.0, -0.2]  # inside the room, looking along +z
+        entries.append({"file": f"f{k}.png", "timestamp": 0.1 * k, "T_cam_from_world": pose.tolist()})
+    camera = {"width": 64, "height": 48, "fx": 50.0, "fy": 50.0, "cx": 32.0, "cy": 24.0}
+    camera["distortion"] = {"model": "none", "coeffs": []}
+    meta = {"camera": camera, "rate_hz": 10, "frames": entries}
+    (folder / "sequence" / "frames.json").write_text(json.dumps(meta))
+
+
+def test_real_sequences_are_the_set_folders_with_a_frames_json_each_read_with_its_map(tmp_path):
+    _sequence_set(tmp_path / "room_b", 3)
+    _sequence_set(tmp_path / "room_a", 2)
+    (tmp_path / "no_sequence").mkdir()
+    assert sequence.real_sequences(tmp_path) == ["room_a", "room_b"]
+    assert sequence.real_sequences(tmp_path / "absent") == []
+    problem = sequence.real_problem(tmp_path / "room_b")
+    assert problem["name"] == "room_b" and len(problem["frames"]) == 3
+    assert problem["truth"].shape == (3, 4, 4) and len(problem["relative"]) == 2
+    assert problem["camera"].fx == 50.0 and len(problem["line_map"]) > 0
+    assert problem["times"].tolist() == [0.0, 0.1, 0.2] and not problem["blank"].any()
+
+
+def test_an_unknown_scene_is_refused_naming_the_sets_found(tmp_path):
+    _sequence_set(tmp_path / "data" / "room_a", 2)
+    parser = argparse.ArgumentParser()
+    sequence.configure(parser)
+    args = parser.parse_args(
+        ["--scene", "kitchen", "--data", str(tmp_path / "data"), "--out", str(tmp_path / "o")]
+    )
+    with pytest.raises(InvalidInputError, match=r"--scene kitchen: .*found: room_a"):
+        sequence.run(args)

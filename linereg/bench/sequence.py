@@ -1,12 +1,13 @@
 """Sequences: per-frame registration vs one smoothed GTSAM graph vs live tracking; ATE/RPE, timings, plots.
 
-``linereg bench sequence [--scene synthetic|kitchen|all] [--seeds N ...] [--duration S] [--out DIR]``
+``linereg bench sequence [--scene synthetic|real|all|SET] [--seeds N ...] [--duration S] [--data DIR] [--out DIR]``
 
 synthetic: the demo building scanned and mapped (``LineMap.build``), a walk round its courtyard
 (``sim.paths``: 1.4 m/s, 10 Hz, ``--duration`` s) rendered by the demo renderer, with a 2 s blackout of
 the sky and single blank frames, and odometry drifting by 2 % of the distance and 0.5 deg of yaw per metre.
-kitchen: ``sevenscenes_redkitchen/sequence`` (300 real frames, 15 Hz) in a map of that set's cloud, with
-odometry simulated from the ground truth the same way.
+real: every ``SET/sequence/frames.json`` under ``--data`` (``../shared/data``'s ``sevenscenes_redkitchen``: 300
+real frames, 15 Hz; ``docs/extra_data``'s ``iclnuim_office``: 300 rendered frames, 15 Hz), in a map of the set's
+``cloud.ply``, with odometry simulated from the ground truth the same way (``--scene kitchen`` names the first).
 
 Rows: ``odometry`` (dead reckoning from the true first pose), ``per-frame`` (each frame by its own lines:
 refined from its prediction or relocalized near it; ``localize_sequence``'s first step), ``smoothed`` (the
@@ -36,7 +37,12 @@ from ..bench.real import default_data_dir
 
 
 def configure(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--scene", choices=("synthetic", "kitchen", "all"), default="all")
+    parser.add_argument(
+        "--scene",
+        default="all",
+        help="synthetic, real (every SET/sequence/frames.json under --data), all (both; the default), or one "
+        "set's folder name (kitchen: sevenscenes_redkitchen)",
+    )
     parser.add_argument(
         "--seeds",
         type=int,
@@ -73,21 +79,26 @@ def run(args: argparse.Namespace) -> int:
 
     if len(set(args.seeds)) != len(args.seeds):
         raise InvalidInputError(f"--seeds must differ, got {args.seeds}")
-    scenes = ("synthetic", "kitchen") if args.scene == "all" else (args.scene,)
+    data = args.data or default_data_dir()
+    sets = real_sequences(data)
+    scene = KITCHEN if args.scene == "kitchen" else args.scene
+    if scene not in ("synthetic", "real", "all") and scene not in sets:
+        raise InvalidInputError(
+            f"--scene {args.scene}: not synthetic, real, all or a set with sequence/frames.json under {data} "
+            f"(found: {', '.join(sets) or 'none'})"
+        )
     summary = {}
-    for scene in scenes:
-        if scene == "synthetic":
-            for seed in args.seeds:
-                name = "synthetic" if len(args.seeds) == 1 else f"synthetic-seed{seed}"
-                summary[name] = evaluate(synthetic_problem(seed, args.duration), args, args.out / name)
-            if len(args.seeds) > 1:
-                _print_seeds(args.seeds, [summary[f"synthetic-seed{seed}"] for seed in args.seeds])
-            continue
-        problem = kitchen_problem(args.data)
-        if problem is None:
-            print(f"{scene}: data not found, skipped")
-            continue
-        summary[scene] = evaluate(problem, args, args.out / scene)
+    if scene in ("synthetic", "all"):
+        for seed in args.seeds:
+            name = "synthetic" if len(args.seeds) == 1 else f"synthetic-seed{seed}"
+            summary[name] = evaluate(synthetic_problem(seed, args.duration), args, args.out / name)
+        if len(args.seeds) > 1:
+            _print_seeds(args.seeds, [summary[f"synthetic-seed{seed}"] for seed in args.seeds])
+    if scene != "synthetic":
+        if not sets:
+            print(f"real sequences: none under {data} (a set folder with sequence/frames.json), skipped")
+        for name in sets if scene in ("real", "all") else [scene]:
+            summary[name] = evaluate(real_problem(data / name), args, args.out / name)
     from .. import io
 
     io.write_json_atomic(args.out / "results.json", summary)
@@ -126,18 +137,30 @@ def synthetic_problem(seed: int, duration_s: float) -> dict[str, Any]:
     return problem | dict(truth=truth, relative=relative, covariances=covariances, blank=blank)
 
 
-def kitchen_problem(data: Path | None) -> dict[str, Any] | None:
-    """Returns the real kitchen sequence with odometry simulated from its ground truth, or None if absent."""
+KITCHEN = "sevenscenes_redkitchen"  # ``--scene kitchen``: the shared data's real sequence
+
+
+def real_sequences(data: Path) -> list[str]:
+    """Returns the names of the set folders under ``data`` holding a ``sequence/frames.json``, sorted."""
+    if not data.is_dir():
+        return []
+    return sorted(p.name for p in data.iterdir() if (p / "sequence" / "frames.json").is_file())
+
+
+def real_problem(folder: Path) -> dict[str, Any]:
+    """Returns a set's image sequence (``sequence/frames.json`` and its frames; the map of the set's
+    ``cloud.ply``) with odometry simulated from its ground truth."""
     from .. import io
     from ..camera import Camera
+    from ..errors import FileFormatError
     from ..map.linemap import LineMap
     from ..sim import paths
 
-    folder = (data or default_data_dir()) / "sevenscenes_redkitchen"
     meta_path = folder / "sequence" / "frames.json"
-    if not meta_path.is_file():
-        return None
-    meta = json.loads(meta_path.read_text())
+    try:
+        meta = json.loads(meta_path.read_text())
+    except (OSError, ValueError) as e:
+        raise FileFormatError(f"{meta_path}: {type(e).__name__}: {e}") from None
     c = meta["camera"]
     camera = Camera(
         fx=c["fx"],
@@ -153,8 +176,8 @@ def kitchen_problem(data: Path | None) -> dict[str, Any] | None:
     truth = np.array([f["T_cam_from_world"] for f in meta["frames"]], dtype=np.float64)
     times = np.array([f["timestamp"] for f in meta["frames"]], dtype=np.float64)
     relative, covariances = paths.drifting_odometry(truth, np.random.default_rng(0))
-    print(f"kitchen: map of {len(line_map)} segments, {len(frames)} frames")
-    problem = dict(name="kitchen", line_map=line_map, camera=camera, frames=frames, times=times)
+    print(f"{folder.name}: map of {len(line_map)} segments, {len(frames)} frames")
+    problem = dict(name=folder.name, line_map=line_map, camera=camera, frames=frames, times=times)
     blank = np.zeros(len(frames), bool)
     return problem | dict(truth=truth, relative=relative, covariances=covariances, blank=blank)
 
