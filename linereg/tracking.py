@@ -89,7 +89,9 @@ log = logging.getLogger(__name__)
 def _tracking_sequence() -> SequenceConfig:
     """The sequence checks with a refinement sized for a good prediction: fewer rounds and iterations."""
     base = SequenceConfig()
-    refine = replace(base.register.refine, max_rounds=3, max_iterations=10, start_factor=1.5)
+    refine = replace(
+        base.register.refine, max_rounds=3, max_iterations=10, start_factor=1.5, noise_model="mad"
+    )
     return replace(base, register=replace(base.register, refine=refine))
 
 

@@ -292,3 +292,62 @@ def test_each_image_stretch_keeps_its_longest_cover_and_the_fragments_beside_it(
     assert np.array_equal(got, want)
     assert 0 < got.sum() < (cover[:, 1] - cover[:, 0] >= 5.0).sum()  # some dropped for overlaps
     assert _one_per_stretch(np.zeros(0, np.int64), np.zeros((0, 2)), 5.0).shape == (0,)
+
+
+def test_inlier_sigma_is_the_inliers_noise_among_outliers_spread_over_the_window():
+    from linereg.refine import inlier_sigma
+
+    rng = np.random.default_rng(0)
+    mixed = np.r_[rng.normal(0.0, 1.3, 700), rng.uniform(-10.0, 10.0, 300)]  # pairs covered within 10 px
+    mad = 1.4826 * np.median(np.abs(mixed))
+    assert abs(inlier_sigma(mixed, 10.0) - 1.3) < 0.15 and mad > 1.9  # the MAD is the outliers'
+    clean = rng.normal(0.0, 2.0, 1000)
+    assert abs(inlier_sigma(clean[np.abs(clean) <= 10.0], 10.0) - 2.0) < 0.2  # no outliers: the noise
+    assert inlier_sigma(np.array([0.5, -1.0, 12.0]), 10.0) == pytest.approx(1.4826 * 0.75)  # few: the MAD
+    assert inlier_sigma(np.array([11.0]), 10.0) == 10.0  # none within the window
+
+
+def _clutter_beside(scene, share: float, rng: np.random.Generator) -> np.ndarray:
+    """Returns image segments parallel to ``share`` of the true ones, 2-9 px beside them (texture edges)."""
+    true2d = scene.lines2d[scene.true_matches[:, 0]]
+    picked = true2d[rng.random(len(true2d)) < share]
+    d = picked[:, 2:] - picked[:, :2]
+    normal = np.c_[-d[:, 1], d[:, 0]] / np.linalg.norm(d, axis=1)[:, None]
+    offset = rng.uniform(2.0, 9.0, len(picked))[:, None] * normal
+    return picked + np.c_[offset, offset]
+
+
+def test_the_covers_tighten_to_the_inliers_noise_and_let_the_wide_rounds_clutter_go(monkeypatch):
+    """From the exact pose, a first round covering at 10 px takes in edges beside the true lines; the MAD of
+    those pairs is the clutter's and kept later rounds as wide (``noise_model="mad"``), the mixture's sigma
+    is the true lines' and lets the clutter go: the refinement stays nearer the pose."""
+    import linereg.refine as refine_module
+
+    score = ScoreConfig(distance_px=4.0)
+    errors: dict[str, list[float]] = {"mad": [], "mixture": []}
+    last: dict[str, list[float]] = {"mad": [], "mixture": []}
+    threshold = refine_module._threshold_px
+    for seed in range(4):
+        scene = paper_scene(np.random.default_rng(seed), 100, 0.3, 0.3, 0.7)
+        clutter = _clutter_beside(scene, 0.6, np.random.default_rng(seed + 50))
+        image = image_lines(np.r_[scene.lines2d, clutter], scene.camera, score)
+        for model in errors:
+            tolerances: list[float] = []
+
+            def recording(problem, pose, config, ceiling, tolerances=tolerances):
+                tolerances.append(threshold(problem, pose, config, ceiling))
+                return tolerances[-1]
+
+            monkeypatch.setattr(refine_module, "_threshold_px", recording)
+            config = RefineConfig(noise_model=model)
+            result = refine_pose(image, scene.lines3d, scene.camera, scene.cam_from_world, config, score)
+            errors[model].append(pose_errors(result.cam_from_world, scene.cam_from_world)[0])
+            last[model].append(tolerances[-1])
+    assert np.mean(errors["mixture"]) < 0.7 * np.mean(errors["mad"])
+    assert np.median(last["mixture"]) < 3.5 < np.median(last["mad"])
+
+
+def test_an_unknown_noise_model_is_refused():
+    scene = paper_scene(np.random.default_rng(0), 30, 0.0, 0.0, 0.0)
+    with pytest.raises(InvalidInputError, match="noise_model"):
+        refine(scene, scene.cam_from_world, RefineConfig(noise_model="median"))  # type: ignore[arg-type]
