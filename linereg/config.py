@@ -449,11 +449,11 @@ class RefineConfig:
     kernel_px: float = 2.0
     # re-association keeps covers within outlier_sigmas sigmas of the residuals' noise, at least
     # min_outlier_px and at most the last round's tolerance: the test tightens as the pose converges. The
-    # sigma: "mixture" the inliers' of inliers and outliers spread over the last round's tolerance
-    # (``refine.inlier_sigma``); "mad" 1.4826 x their median (the pairs of a wide first round hold so many
-    # outliers that it is theirs, and kept the tolerance wide; the tracker keeps it: its fix test was
-    # measured with it, and with the mixture three tracked frames of a synthetic walk were claimed 0.3 m
-    # off, docs/measurements.md, session 49)
+    # noise: "mixture", the inliers' sigma in a mixture with outliers spread evenly over the last round's
+    # tolerance (``refine.inlier_sigma``); "mad", 1.4826 x the residuals' median (the pairs of a wide first
+    # round hold so many outliers that it is theirs, and it kept the tolerance wide). The tracker keeps the
+    # MAD: its fix tests were measured with it, and with the mixture three tracked frames of a synthetic
+    # walk were claimed 0.3 m off (docs/measurements.md, session 49)
     noise_model: Literal["mixture", "mad"] = "mixture"
     outlier_sigmas: float = 3.0
     min_outlier_px: float = 2.0

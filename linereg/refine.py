@@ -268,14 +268,15 @@ def inlier_sigma(residuals: np.ndarray, window_px: float, iterations: int = 30) 
     r = r[r <= window_px]
     if len(r) == 0:
         return window_px
-    sigma = max(1.4826 * float(np.median(r)), 0.1)
+    floor = 0.1  # px: exact residuals (noise-free scenes) must not drive the sigma to zero
+    sigma = max(1.4826 * float(np.median(r)), floor)
     if len(r) < 8:  # too few to tell inliers from outliers
         return sigma
-    share = 0.8  # of inliers
+    share = 0.8  # of inliers, at the start; kept within [0.05, 0.99] so that neither side vanishes
     for _ in range(iterations):
         inlier = share * 2.0 * np.exp(-0.5 * (r / sigma) ** 2) / (np.sqrt(2 * np.pi) * sigma)
         weight = inlier / (inlier + (1 - share) / window_px + 1e-300)
-        sigma = max(float(np.sqrt((weight * r * r).sum() / max(weight.sum(), 1e-9))), 0.1)
+        sigma = max(float(np.sqrt((weight * r * r).sum() / max(weight.sum(), 1e-9))), floor)
         share = float(np.clip(weight.mean(), 0.05, 0.99))
     return sigma
 

@@ -87,7 +87,8 @@ log = logging.getLogger(__name__)
 
 
 def _tracking_sequence() -> SequenceConfig:
-    """The sequence checks with a refinement sized for a good prediction: fewer rounds and iterations."""
+    """The sequence checks with a refinement sized for a good prediction: fewer rounds and iterations, and
+    the residuals' noise by their MAD (``RefineConfig.noise_model``: the fix tests were measured with it)."""
     base = SequenceConfig()
     refine = replace(
         base.register.refine, max_rounds=3, max_iterations=10, start_factor=1.5, noise_model="mad"
