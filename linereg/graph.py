@@ -18,7 +18,7 @@ import numpy as np
 from .camera import Camera
 from .config import LineDetectConfig, RegisterConfig
 from .errors import InvalidInputError
-from .geometry import check_rigid, invert, line_coefficients
+from .geometry import invert, line_coefficients
 from .line_factor import LineProjection, line_factor
 from .lines2d import detect
 from .refine import fragments, residual_variance, robust_noise
@@ -47,12 +47,6 @@ def predict(cam_from_world: np.ndarray, relative: np.ndarray) -> np.ndarray:
 def relative_pose(cam_a_from_world: np.ndarray, cam_b_from_world: np.ndarray) -> np.ndarray:
     """Returns the (4, 4) cam_a_from_cam_b between two poses (what odometry measures from a to b)."""
     return cam_a_from_world @ invert(cam_b_from_world)
-
-
-def check_relative_pose(value: object, name: str) -> np.ndarray:
-    """Returns ``value`` as a (4, 4) float64 rigid transform (``geometry.check_rigid``), or raises
-    InvalidInputError naming it."""
-    return check_rigid(value, name)
 
 
 def check_covariance(value: object, name: str) -> np.ndarray:

@@ -31,12 +31,11 @@ import numpy as np
 from .camera import Camera
 from .config import LineDetectConfig, RegisterConfig, ScoreConfig
 from .errors import InvalidInputError
-from .geometry import camera_center, rotation_error_deg
+from .geometry import camera_center, check_rigid, rotation_error_deg
 from .graph import (
     LineFit,
     carry,
     check_covariance,
-    check_relative_pose,
     chi2_quantile,
     frame_key,
     frame_lines,
@@ -181,7 +180,7 @@ def check_odometry(
         raise InvalidInputError(
             f"{num_frames} frames need {num_frames - 1} relative poses, got {len(relative_poses)}"
         )
-    relative = [check_relative_pose(T, f"relative_poses[{k}]") for k, T in enumerate(relative_poses)]
+    relative = [check_rigid(T, f"relative_poses[{k}]") for k, T in enumerate(relative_poses)]
     if relative_covariances is None:
         c = config
         return relative, [

@@ -47,10 +47,9 @@ import numpy as np
 from .align import align_window, rotation_prior
 from .camera import Camera
 from .errors import InvalidInputError
-from .geometry import camera_center
+from .geometry import camera_center, check_rigid
 from .graph import (
     LineFit,
-    check_relative_pose,
     chi2_quantile,
     frame_key,
     frame_lines,
@@ -180,7 +179,7 @@ class Tracker:
         self, cam_from_world: np.ndarray, sigma_rot_deg: float = 1.0, sigma_pos_m: float = 0.05
     ) -> None:
         """Starts (or restarts) tracking from a known (4, 4) pose with the given uncertainty."""
-        pose = check_relative_pose(cam_from_world, "cam_from_world")
+        pose = check_rigid(cam_from_world, "cam_from_world")
         self._anchor(pose, np.diag([np.radians(sigma_rot_deg) ** 2] * 3 + [sigma_pos_m**2] * 3))
         self._unconfirmed = None
         self.event = "initialized"
@@ -199,7 +198,7 @@ class Tracker:
         timestamp: seconds, increasing. Bad input raises InvalidInputError and leaves the tracker as it was.
         """
         start = time.perf_counter()
-        relative = None if relative_pose is None else check_relative_pose(relative_pose, "relative_pose")
+        relative = None if relative_pose is None else check_rigid(relative_pose, "relative_pose")
         if timestamp is not None and not (
             math.isfinite(timestamp) and (self._stamp is None or timestamp > self._stamp)
         ):

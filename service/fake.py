@@ -95,9 +95,9 @@ class FakeTracker:
     def step(self, frame, relative_pose=None, timestamp=None) -> Registration:
         """Returns a Registration encoding ``frame`` and the step count; ``event`` says how."""
         if relative_pose is not None:
-            from linereg.graph import check_relative_pose  # GTSAM: loaded only by tests that need it
+            from linereg.geometry import check_rigid
 
-            check_relative_pose(relative_pose, "relative_pose")
+            check_rigid(relative_pose, "relative_pose")
         frame = np.asarray(frame)
         code = frame[0, 0] if frame.ndim == 2 and frame.shape[1:] == (4,) and len(frame) else 0.0
         if code == -4:

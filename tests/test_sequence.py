@@ -13,8 +13,8 @@ import pytest
 from linereg import sequence
 from linereg.camera import Camera
 from linereg.errors import InvalidInputError
-from linereg.geometry import invert, pose_errors
-from linereg.graph import check_relative_pose, from_pose3, relative_pose, to_pose3
+from linereg.geometry import check_rigid, invert, pose_errors
+from linereg.graph import from_pose3, relative_pose, to_pose3
 from linereg.map.linemap import LineMap
 from linereg.priors import Prior
 from linereg.registration import Registration
@@ -202,7 +202,7 @@ def test_sequence_bad_input_names_the_frame(scene):
     with pytest.raises(InvalidInputError, match="not rigid"):
         localize_sequence(frames[:2], line_map, CAMERA, [skewed])
     # odometry written to six digits is a rigid motion (the nearest rotation is taken)
-    written = check_relative_pose(np.round(relative[0], 6), "relative_poses[0]")
+    written = check_rigid(np.round(relative[0], 6), "relative_poses[0]")
     np.testing.assert_allclose(written[:3, :3] @ written[:3, :3].T, np.eye(3), atol=1e-12)
     np.testing.assert_allclose(written, relative[0], atol=1e-5)
     with pytest.raises(InvalidInputError, match="relative poses"):

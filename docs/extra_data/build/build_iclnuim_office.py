@@ -30,7 +30,7 @@ from scipy.spatial import cKDTree
 from scipy.spatial.transform import Rotation
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import CONVENTION, cam_entry, edgecheck, overlay, write_ply
+from common import CONVENTION, cam_entry, edgecheck, overlay, set_header, write_ply
 
 W, H, FX, FY_ICL, CX, CY, SCALE = 640, 480, 481.2, -480.0, 319.5, 239.5, 5000.0
 VOXEL, MIN_VIEWS, MAXD, STEP, EXCL = 0.01, 2, 6.0, 8, 10
@@ -187,10 +187,7 @@ for q in QUERIES:
         )
     )
 meta = {
-    "set": os.path.basename(os.path.normpath(out)),
-    "convention": CONVENTION,
-    "cloud": "cloud.ply",
-    "n_points": len(full),
+    **set_header(out, len(full)),
     "voxel_m": VOXEL,
     "world_frame": "ICL-NUIM office GT world (traj0.gt.freiburg) mirrored about x: X_out = diag(-1,1,1) X_icl; "
     "y is up (gravity along -y)",

@@ -12,7 +12,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import CONVENTION, cam_entry, edgecheck, overlay, write_ply
+from common import cam_entry, edgecheck, overlay, set_header, write_ply
 
 calib, velo, image, out, src_note, cloud_note = sys.argv[1:7]
 os.makedirs(out, exist_ok=True)
@@ -52,10 +52,7 @@ print(
     + ", ".join(f"{k} {v:.2f}" for k, v in per.items())
 )
 meta = {
-    "set": os.path.basename(os.path.normpath(out)),
-    "convention": CONVENTION,
-    "cloud": "cloud.ply",
-    "n_points": len(pts),
+    **set_header(out, len(pts)),
     "cloud_properties": "x y z (float32, metres, Velodyne HDL-64E frame) + intensity (float32, 0..1); "
     + cloud_note,
     "world_frame": "Velodyne frame of the single scan: x forward, y left, z up",

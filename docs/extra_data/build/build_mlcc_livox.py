@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONVENTION, cam_entry, edgecheck, overlay, read_pcd_header, write_ply
+from common import cam_entry, edgecheck, overlay, read_pcd_header, set_header, write_ply
 
 CLOUDS = [(1, 10), (2, 12), (2, 13)]  # (MID-100 unit, station) present in the repo
 IMAGES = [(0, 0), (0, 21), (0, 1), (1, 0), (1, 21)]  # (camera 0=left 1=right, station)
@@ -131,10 +131,7 @@ def main(src, out):
             )
         )
     meta = {
-        "set": out.name,
-        "convention": CONVENTION,
-        "cloud": "cloud.ply",
-        "n_points": len(xyz),
+        **set_header(out, len(xyz)),
         "cloud_properties": "x y z (float32, metres) + intensity (float32, as shipped); three Livox Mid-40 "
         "rosette scans (MID-100 units L1@station10, L2@station12, L2@station13) merged, "
         "2 cm voxel-averaged",

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import CONVENTION, cam_entry, edgecheck, overlay, write_ply
+from common import cam_entry, edgecheck, overlay, set_header, write_ply
 
 ALLOWED = {
     ("numpy.core.multiarray", "_reconstruct"),
@@ -87,10 +87,7 @@ for cam in ["CAM_FRONT", "CAM_FRONT_RIGHT", "CAM_BACK_RIGHT", "CAM_BACK", "CAM_B
         )
     )
 meta = {
-    "set": os.path.basename(os.path.normpath(out)),
-    "convention": CONVENTION,
-    "cloud": "cloud.ply",
-    "n_points": len(pts),
+    **set_header(out, len(pts)),
     "cloud_properties": "x y z (float32, metres, nuScenes LIDAR_TOP frame, Velodyne HDL-32E) + intensity (float32, "
     "0..255 as shipped); one sweep, points within 1 m (horizontal) of the sensor removed",
     "world_frame": "LIDAR_TOP frame of the single sweep (nuScenes: x right, y forward, z up)",

@@ -17,7 +17,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from common import CONVENTION, cam_entry, edgecheck, overlay, read_pcd_header, write_ply
+from common import cam_entry, edgecheck, overlay, read_pcd_header, set_header, write_ply
 
 
 def lzf_decompress(src, out_len):
@@ -114,10 +114,7 @@ def main(kind, src, out):
     write_ply(out / "cloud.ply", xyz.astype(np.float32), {"intensity": inten})
     model = "opencv_radtan_k1k2p1p2" if len(D) == 4 else "opencv_radtan_k1k2p1p2k3"
     cams = {
-        "set": out.name,
-        "convention": CONVENTION,
-        "cloud": "cloud.ply",
-        "n_points": len(xyz),
+        **set_header(out, len(xyz)),
         "cloud_properties": "x y z (float32, metres, LiDAR frame) + intensity (float32, 0..255 as shipped); "
         "one 360 deg sweep of a 64-beam spinning LiDAR",
         "world_frame": "LiDAR frame of the single sweep: x forward, y left, z up",

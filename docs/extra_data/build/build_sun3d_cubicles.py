@@ -19,7 +19,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from common import CONVENTION, cam_entry, edgecheck, overlay, write_ply
+from common import cam_entry, edgecheck, overlay, set_header, write_ply
 
 VOXEL, MAXD, EXCL, TSDF_VOXEL, TRUNC, STEP = 0.01, 4.5, 10, 0.015, 0.06, 2
 FRAGMENTS = {"fragment-1-rgbd-frames": range(935, 985), "fragment-2-rgbd-frames": range(3160, 3210)}
@@ -219,10 +219,7 @@ for q in QUERIES:
         )
     )
 meta = {
-    "set": os.path.basename(os.path.normpath(out)),
-    "convention": CONVENTION,
-    "cloud": "cloud.ply",
-    "n_points": len(full),
+    **set_header(out, len(full)),
     "voxel_m": VOXEL,
     "world_frame": "world frame of the 3DMatch/SUN3D pose files (unchanged)",
     "images": images,

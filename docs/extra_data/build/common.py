@@ -1,5 +1,7 @@
 """Shared helpers for the extra_data builders (numpy + opencv only)."""
 
+import os
+
 import cv2
 import numpy as np
 
@@ -137,6 +139,12 @@ def edgecheck(img, xyz_w, T_cw, K, dist=None, trunc=15.0, win=3):
             T[:3, 3] = rot(ax, d) @ T_cw[:3, 3]
             out["xyz"[ax] + f"{d:+.1f}"] = score(T)[0]
     return s0, n0, out
+
+
+def set_header(out, n_points):
+    """The fields every set's cameras.json starts with: its folder name, the convention, its cloud and size."""
+    name = os.path.basename(os.path.normpath(str(out)))
+    return {"set": name, "convention": CONVENTION, "cloud": "cloud.ply", "n_points": int(n_points)}
 
 
 def mat(T):
