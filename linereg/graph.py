@@ -31,6 +31,12 @@ def frame_key(k: int) -> int:
     return int(gtsam.symbol("x", k))
 
 
+def lines_key(k: int) -> int:
+    """Returns the gtsam key of the pose frame k's lines give against the map (``sequence.smooth``: the
+    frame's pose up to the map's own error)."""
+    return int(gtsam.symbol("l", k))
+
+
 def to_pose3(cam_from_world: np.ndarray) -> gtsam.Pose3:
     return gtsam.Pose3(invert(cam_from_world))  # gtsam Pose3 is world_T_cam
 
