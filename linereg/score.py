@@ -337,6 +337,17 @@ def _cover(seg: np.ndarray, length: float, p: np.ndarray, distance: float) -> tu
     """Returns (lo, hi) px along image segment ``seg`` (4,) covered by projected segment ``p`` (4,), or
     (0, 0) when it does not cover: the shared stretch along the image segment, where the projected line
     must lie within ``distance`` of the image segment's line at both ends."""
+    lo, hi, off_lo, off_hi = _overlap(seg, length, p)
+    if hi <= lo or off_lo > distance or off_hi > distance:
+        return 0.0, 0.0
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True)
+def _overlap(seg: np.ndarray, length: float, p: np.ndarray) -> tuple[float, float, float, float]:
+    """Returns (lo, hi, |offset at lo|, |offset at hi|): the stretch (px along image segment ``seg`` (4,))
+    that projected segment ``p`` (4,) shares with it and p's distances from seg's line at its two ends
+    (``_cover`` at any distance); (0, 0, inf, inf) when they share none."""
     ux = (seg[2] - seg[0]) / length
     uy = (seg[3] - seg[1]) / length
     s1 = (p[0] - seg[0]) * ux + (p[1] - seg[1]) * uy
@@ -346,11 +357,9 @@ def _cover(seg: np.ndarray, length: float, p: np.ndarray, distance: float) -> tu
     lo = max(min(s1, s2), 0.0)
     hi = min(max(s1, s2), length)
     if hi <= lo or s1 == s2:
-        return 0.0, 0.0
+        return 0.0, 0.0, np.inf, np.inf
     slope = (e2 - e1) / (s2 - s1)
-    if abs(e1 + slope * (lo - s1)) > distance or abs(e1 + slope * (hi - s1)) > distance:
-        return 0.0, 0.0
-    return lo, hi
+    return lo, hi, abs(e1 + slope * (lo - s1)), abs(e1 + slope * (hi - s1))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -373,12 +382,50 @@ def _covering_pairs(
     segment is listed wherever it passes within ``distance + grid_px / 2``, so none that j passes within
     ``distance`` of is missed).
     """
+    i, j, cover, _, _ = _covering_candidates(
+        segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected,
+        _angle_limits(lengths, distance, angle_tol), distance,
+    )  # fmt: skip
+    return i, j, cover
+
+
+@numba.njit(cache=True, nogil=True)
+def _angle_limits(lengths: np.ndarray, distance: float, angle_tol: float) -> np.ndarray:
+    """Returns (N,) the largest angle (rad) at which a projected segment may cover each image segment of
+    ``lengths`` (N,): ``angle_tol``, or more for short segments, whose angles are as uncertain as the
+    distance test allows at their ends."""
+    out = np.empty(len(lengths))
+    for i in range(len(lengths)):
+        out[i] = max(angle_tol, np.arctan(2.0 * distance / lengths[i]))
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _covering_candidates(
+    segments: np.ndarray,
+    angles: np.ndarray,
+    lengths: np.ndarray,
+    grid_ptr: np.ndarray,
+    grid_items: np.ndarray,
+    grid_w: int,
+    grid_px: float,
+    projected: np.ndarray,
+    limits: np.ndarray,
+    distance: float,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """``_covering_pairs`` at ``distance`` and (N,) per image segment angle ``limits`` (``_angle_limits``),
+    with what a tighter test needs: returns ((P,) i, (P,) j, (P, 2) cover, (P,) angle between them (rad),
+    (P, 2) |offsets| at the cover's ends). The pairs of any tighter tolerance are those passing it, in the
+    same order (``_tighter``): one pass over the grid serves every tolerance a pose is tested at."""
     grid_h = (len(grid_ptr) - 1) // grid_w
     seen = np.full(len(segments), -1, np.int64)
     cap = 4 * (len(projected) + len(segments)) + 64
     out_i = np.empty(cap, np.int64)
     out_j = np.empty(cap, np.int64)
     out_c = np.empty((cap, 2))
+    out_a = np.empty(cap)
+    out_e = np.empty((cap, 2))
+    cells = np.empty(256, np.int64)  # the cell of each sample along j (-1: outside the grid)
     n = 0
     for j in range(len(projected)):
         p = projected[j]
@@ -388,33 +435,63 @@ def _covering_pairs(
             continue
         angle = np.arctan2(dy, dx) % np.pi
         count = int(length / (0.5 * grid_px)) + 1
-        for s in range(count + 1):
+        if count + 1 > len(cells):
+            cells = np.empty(2 * (count + 1), np.int64)
+        for s in range(count + 1):  # without branches: the compiler runs it on vectors
             t = s / count
             c = int((p[0] + t * dx + 0.5) / grid_px)
             r = int((p[1] + t * dy + 0.5) / grid_px)
-            if r < 0 or r >= grid_h or c < 0 or c >= grid_w:
+            inside = (r >= 0) & (r < grid_h) & (c >= 0) & (c < grid_w)
+            cells[s] = r * grid_w + c if inside else -1
+        last = -1
+        for s in range(count + 1):
+            cell = cells[s]
+            if cell < 0 or cell == last:  # samples half a cell apart: its segments are all seen already
                 continue
-            cell = r * grid_w + c
+            last = cell
             for q in range(grid_ptr[cell], grid_ptr[cell + 1]):
                 i = grid_items[q]
                 if seen[i] == j:
                     continue
                 seen[i] = j
                 gap = abs(angles[i] - angle)
-                # short segments' angles are as uncertain as the distance test allows at their ends
-                if min(gap, np.pi - gap) > max(angle_tol, np.arctan(2.0 * distance / lengths[i])):
+                gap = min(gap, np.pi - gap)
+                if gap > limits[i]:
                     continue
-                lo, hi = _cover(segments[i], lengths[i], p, distance)
-                if hi > lo:
-                    if n == cap:
-                        cap *= 2
-                        out_i = grow(out_i, cap)
-                        out_j = grow(out_j, cap)
-                        out_c = _grow_2(out_c, cap)
-                    out_i[n], out_j[n] = i, j
-                    out_c[n, 0], out_c[n, 1] = lo, hi
-                    n += 1
-    return out_i[:n].copy(), out_j[:n].copy(), out_c[:n].copy()
+                lo, hi, off_lo, off_hi = _overlap(segments[i], lengths[i], p)
+                if hi <= lo or off_lo > distance or off_hi > distance:
+                    continue
+                if n == cap:
+                    cap *= 2
+                    out_i, out_j, out_a = grow(out_i, cap), grow(out_j, cap), grow(out_a, cap)
+                    out_c, out_e = _grow_2(out_c, cap), _grow_2(out_e, cap)
+                out_i[n], out_j[n], out_a[n] = i, j, gap
+                out_c[n, 0], out_c[n, 1] = lo, hi
+                out_e[n, 0], out_e[n, 1] = off_lo, off_hi
+                n += 1
+    return out_i[:n].copy(), out_j[:n].copy(), out_c[:n].copy(), out_a[:n].copy(), out_e[:n].copy()
+
+
+@numba.njit(cache=True, nogil=True)
+def _tighter(
+    i: np.ndarray,
+    gap: np.ndarray,
+    offsets: np.ndarray,
+    lengths: np.ndarray,
+    distance: float,
+    angle_tol: float,
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns the indices of the ``_covering_candidates`` (their (P,) image rows i, angles and (P, 2)
+    offsets) that pass ``_covering_pairs``' test at ``distance`` and ``angle_tol``, in order."""
+    limits = _angle_limits(lengths, distance, angle_tol)
+    keep = np.empty(len(i), np.int64)
+    n = 0
+    for k in range(len(i)):
+        if gap[k] > limits[i[k]] or offsets[k, 0] > distance or offsets[k, 1] > distance:
+            continue
+        keep[n] = k
+        n += 1
+    return keep[:n].copy()
 
 
 @numba.njit(cache=True, nogil=True)

@@ -15,6 +15,7 @@ to the score's own. What comes out are scored poses; the composer refines the be
 
 from __future__ import annotations
 
+import itertools
 import logging
 import threading
 from collections.abc import Callable
@@ -25,17 +26,21 @@ import numpy as np
 
 from .camera import Camera
 from .config import ScoreConfig, SearchConfig
-from .geometry import camera_center, invert, make_cam_from_world, rotation_error_deg
-from .kernels import jacobi_rotation, stable_argsort
+from .geometry import camera_center, make_cam_from_world, rotation_error_deg
+from .kernels import invert_rigid, jacobi_rotation, numpy_sum, prefetch, stable_argsort
 from .points import Points
 from .score import (
     ImageLines,
     Score,
+    _angle_limits,
+    _covering_candidates,
     _covering_pairs,
     _greedy,
+    _length_in_cells,
     _project_clipped,
+    _tighter,
+    _union_lengths,
     grow,
-    score_pose,
 )
 from .threads import map_threads, run_parallel, thread_count
 
@@ -97,34 +102,8 @@ def search(
         voxel = float(np.cbrt(np.prod(np.maximum(hi - lo, 1e-9)) / config.voxels))
         boxes.append((lo, hi, voxel, np.maximum(np.ceil((hi - lo) / voxel).astype(np.int64), 1)))
     stats = SearchStats(voxels=sum(int(np.prod(b[3])) for b in boxes), voxel_m=boxes[0][2])
-    # the rotations are voted in threads (the kernels release the GIL), each thread on grids of its own; a
-    # rotation's peaks do not depend on which thread voted it
-    workers = thread_count(min(config.max_threads, len(rotations)))
-    by_rotation: list[list[tuple[float, int, np.ndarray, float]]] = [[] for _ in rotations]
-    rays_of = np.zeros(len(rotations), np.int64)
-
-    def vote(worker: int) -> None:
-        # one grid per thread serves every box in turn (a vote clears the last one's); kept between searches
-        grid = _Grid.take(max(int(np.prod(box[3])) for box in boxes))
-        fine = _FineGrids(config.coarse_peaks, config.fine_voxels)
-        for r in range(worker, len(rotations), workers):
-            rays = _pair_rays(image_pts, map_pts, signatures, camera, rotations[r], config)
-            rays_of[r] = len(rays[0])
-            for box in boxes:
-                # coarse votes over the whole region, then finer ones around the best coarse voxels
-                lo, _, voxel, _ = box
-                near = config.min_range_voxels * voxel
-                grid.vote(box, rays, map_pts.positions, image_pts.weight, near)
-                centres, _ = _peaks(grid.votes, lo, voxel, config.coarse_peaks, grid.voted)
-                half = config.fine_span * voxel
-                fine_votes = fine.vote(centres, half, rays, map_pts.positions, image_pts.weight, near)
-                for centre, v, size in fine_votes:
-                    by_rotation[r].append((v, r, centre, size))
-        grid.give_back()  # not after an error: its votes may be half cleared
-
-    run_parallel(vote, workers)
+    peaks, rays_of = _vote_peaks(image_pts, map_pts, signatures, camera, rotations, boxes, config)
     stats.rays, stats.per_rotation = int(rays_of.sum()), [int(n) for n in rays_of]
-    peaks = [p for found_r in by_rotation for p in found_r]
     # a symmetric building gives every rotation as many votes as the truth: each fine peak gets a quick
     # solve (``quick_rounds`` rounds from pairs at a tolerance spanning its voxel and the rotation's error),
     # is scored at the score's own tolerance, and the best of those are solved fully
@@ -147,6 +126,63 @@ def search(
     ]
     found.sort(key=lambda p: -p.score.value)
     return found, stats
+
+
+_Box = tuple[np.ndarray, np.ndarray, float, np.ndarray]  # (low corner, high corner, voxel m, (3,) voxels)
+_Peak = tuple[float, int, np.ndarray, float]  # (votes, rotation, (3,) centre, voxel m) of a fine peak
+
+
+def _vote_peaks(
+    image_pts: Points,
+    map_pts: Points,
+    signatures: MapSignatures,
+    camera: Camera,
+    rotations: list[np.ndarray],
+    boxes: list[_Box],
+    config: SearchConfig,
+) -> tuple[list[_Peak], np.ndarray]:
+    """Returns (the fine peaks of every rotation and box, rotation by rotation, box by box; (R,) the rays
+    each rotation voted with): for each box, coarse votes over the whole box, then finer ones round its
+    best coarse voxels.
+
+    The (rotation, box) votes run in threads (the kernels release the GIL), each on grids of its own, each
+    taken by the first thread free (dealt by rotation, 7 rotations left one of 2 threads idle for a
+    rotation's two boxes); a rotation's rays are made by the first of its votes taken. A box's peaks do not
+    depend on which thread voted it."""
+    workers = thread_count(min(config.max_threads, len(rotations)))
+    rays: list[tuple[np.ndarray, ...] | None] = [None for _ in rotations]
+    locks = [threading.Lock() for _ in rotations]
+    # box by box: two threads starting on one rotation's two boxes waited for its rays one after the other
+    tasks = [(r, b) for b in range(len(boxes)) for r in range(len(rotations))]
+    found: list[list[list[_Peak]]] = [[[] for _ in boxes] for _ in rotations]
+    taken = itertools.count()  # the next task; next() on it is atomic under the GIL
+
+    def rays_of_rotation(r: int) -> tuple[np.ndarray, ...]:
+        with locks[r]:  # made once, by the first of the rotation's tasks taken
+            made = rays[r]
+            if made is None:
+                made = rays[r] = _pair_rays(image_pts, map_pts, signatures, camera, rotations[r], config)
+            return made
+
+    def vote(worker: int) -> None:
+        # one grid per thread serves every box in turn (a vote clears the last one's); kept between searches
+        grid = _Grid.take(max(int(np.prod(box[3])) for box in boxes))
+        fine = _FineGrids(config.coarse_peaks, config.fine_voxels)
+        while (t := next(taken)) < len(tasks):
+            r, b = tasks[t]
+            ray_set = rays_of_rotation(r)
+            lo, _, voxel, _ = boxes[b]
+            near = config.min_range_voxels * voxel
+            grid.vote(boxes[b], ray_set, map_pts.positions, image_pts.weight, near)
+            centres, _ = _peaks(grid.votes, lo, voxel, config.coarse_peaks, grid.voted)
+            half = config.fine_span * voxel
+            fine_votes = fine.vote(centres, half, ray_set, map_pts.positions, image_pts.weight, near)
+            found[r][b] = [(v, r, centre, size) for centre, v, size in fine_votes]
+        grid.give_back()  # not after an error: its votes may be half cleared
+
+    run_parallel(vote, workers)
+    rays_of = np.array([0 if made is None else len(made[0]) for made in rays], np.int64)
+    return [p for by_box in found for peaks in by_box for p in peaks], rays_of
 
 
 _Screened = tuple[Score, int, np.ndarray, float]  # (score, rotation, pose, voxel size) of a quick solve
@@ -189,15 +225,19 @@ def _one_each(ranked: list[_Screened], config: SearchConfig) -> list[_Screened]:
     would take both to one place; peaks of one camera often converge together and took the places of the
     poses the decision needs as rivals)."""
     kept: list[_Screened] = []
+    centres: list[np.ndarray] = []  # of the poses kept
     for item in ranked:
         _, _, pose, size = item
+        centre = camera_center(pose)
+        # the centres first: the cheaper test, and the one most pairs fail
         if any(
-            rotation_error_deg(pose[:3, :3], other[:3, :3]) <= config.rotation_slack_deg
-            and np.linalg.norm(camera_center(pose) - camera_center(other)) <= max(size, other_size)
-            for _, _, other, other_size in kept
+            np.linalg.norm(centre - other_centre) <= max(size, other_size)
+            and rotation_error_deg(pose[:3, :3], other[:3, :3]) <= config.rotation_slack_deg
+            for (_, _, other, other_size), other_centre in zip(kept, centres, strict=True)
         ):
             continue
         kept.append(item)
+        centres.append(centre)
         if len(kept) == config.peaks:
             break
     return kept
@@ -264,6 +304,9 @@ def map_signatures(map_pts: Points, labels: np.ndarray, directions: np.ndarray) 
     )
 
 
+RAY_BUFFER = 256  # the voxels a ray's votes look up at a time (``_ray``): about a ray's samples
+PREFETCH_AHEAD = 16  # ``_top_pooled`` asks for the vote this many voxels ahead of the one it reads
+GRID_ROOM = 25  # a new grid holds 1 / GRID_ROOM more voxels than asked for (``_Grid.take``)
 GRIDS_KEPT = 4  # vote grids kept between searches (one per search thread: ``SearchConfig.max_threads``)
 _kept_grids: list[_Grid] = []
 _kept_lock = threading.Lock()
@@ -293,12 +336,16 @@ class _Grid:
 
     @staticmethod
     def take(size: int) -> _Grid:
-        """Returns a kept grid of at least ``size`` voxels, or a new one."""
+        """Returns a kept grid of at least ``size`` voxels, or a new one with room to spare."""
         with _kept_lock:
             for k, grid in enumerate(_kept_grids):
                 if len(grid.accumulator) >= size:
                     return _kept_grids.pop(k)
-        return _Grid(size)
+        # a box's voxels are ``SearchConfig.voxels`` rounded up on each axis: up to ~1.5 % more, varying
+        # from map to map and with a prior, and a grid of exactly one box's size was outgrown by the next
+        # query's (2 of the paper scenes' 20 queries paid a fresh grid's page faults, 40 ms); the room
+        # costs address space only (the pages the rays reach are the memory)
+        return _Grid(size + size // GRID_ROOM)
 
     def give_back(self) -> None:
         """Keeps the grid for a later search (at most ``GRIDS_KEPT``, the largest)."""
@@ -320,7 +367,7 @@ class _Grid:
         lo, hi, voxel, dims = box
         if int(np.prod(dims)) > len(self.accumulator):
             raise ValueError(f"a box of {int(np.prod(dims))} voxels in a grid of {len(self.accumulator)}")
-        self.accumulator[self.voted] = 0.0
+        _clear(self.accumulator, self.voted)
         self.count[0] = 0
         k, m, lam_max, direction = rays
         ids = int(k.max()) + 1 if len(k) else 0
@@ -344,6 +391,16 @@ class _Grid:
     def voted(self) -> np.ndarray:
         """Returns the (V,) flat indices of the voxels with votes, each once."""
         return self.touched[: self.count[0]]
+
+
+@numba.njit(cache=True, nogil=True)
+def _clear(accumulator: np.ndarray, voted: np.ndarray) -> None:  # pragma: no cover - numba
+    """Sets ``accumulator`` (flat) to 0 at the (V,) indices ``voted`` (scattered: each is requested a few
+    indices ahead, ``PREFETCH_AHEAD``)."""
+    for j in range(len(voted)):
+        if j + PREFETCH_AHEAD < len(voted):
+            prefetch(accumulator, voted[j + PREFETCH_AHEAD])
+        accumulator[voted[j]] = 0.0
 
 
 class _FineGrids:
@@ -384,12 +441,35 @@ class _FineGrids:
         )  # fmt: skip
         self.next_id += int(k.max()) + 1 if len(k) else 0
         self.next_map_id += len(positions)
-        out = []
-        for b in range(n):
-            voted = self.touched[b, : self.count[b]]
-            best, votes = _peaks(self.accumulator[b].reshape(dims), lo[b], float(voxel[b]), 1, voted)
-            out += [(c, float(v), float(voxel[b])) for c, v in zip(best, votes, strict=True)]
-        return out
+        boxes, best, votes = _best_in_boxes(
+            self.accumulator, self.touched, self.count, n, self.side, lo, voxel
+        )
+        return [(c, float(v), float(voxel[b])) for b, c, v in zip(boxes, best, votes, strict=True)]
+
+
+@numba.njit(cache=True, nogil=True)
+def _best_in_boxes(
+    accumulator: np.ndarray,
+    touched: np.ndarray,
+    count: np.ndarray,
+    n: int,
+    side: int,
+    lo: np.ndarray,
+    voxel: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns ((K,) boxes, (K, 3) centres, (K,) votes): ``_peaks`` of each of the first n fine grids (rows
+    of ``accumulator`` and ``touched``, ``count`` voxels voted each) that has one, one compiled call for
+    all (the numpy glue of a call per grid held the GIL the voting threads share)."""
+    boxes, centres, votes = np.empty(n, np.int64), np.empty((n, 3)), np.empty(n)
+    k = 0
+    for b in range(n):
+        grid = accumulator[b].reshape((side, side, side))
+        best, value = _peaks_compiled(grid, touched[b, : count[b]], 1, lo[b], voxel[b])
+        for q in range(len(best)):
+            boxes[k], votes[k] = b, value[q]
+            centres[k, 0], centres[k, 1], centres[k, 2] = best[q, 0], best[q, 1], best[q, 2]
+            k += 1
+    return boxes[:k], centres[:k], votes[:k]
 
 
 def _pair_rays(
@@ -456,10 +536,12 @@ def _ray(
     touched: np.ndarray,
     count: np.ndarray,
     slot: int,
+    buffer: np.ndarray,
 ) -> int:
     """Votes image point k's weight (>= 0) along ``Xm - lambda ray``, lam_min < lambda <= lam_max, inside
     [lo, hi], in the voxels where neither image point k nor map point m has voted yet (ids ``k`` and ``m``);
-    a voxel getting its first votes is appended to ``touched`` (its ``count[slot]`` entries)."""
+    a voxel getting its first votes is appended to ``touched`` (its ``count[slot]`` entries). ``buffer``:
+    (B,) int64 scratch, the voxels of up to B samples at a time."""
     lam0, lam1 = lam_min, lam_max
     for axis in range(3):  # the part of the ray inside the region (slab method)
         d = -ray[axis]
@@ -471,23 +553,43 @@ def _ray(
         lam0, lam1 = max(lam0, min(t0, t1)), min(lam1, max(t0, t1))
     if lam1 <= lam0:
         return 0
-    ny, nz = dims[1], dims[2]
+    nx, ny, nz = dims[0], dims[1], dims[2]
     # samples every half voxel: lambda = s voxel / 2, in voxel units from the grid's corner
     inv = 1.0 / voxel
     ox, oy, oz = (Xm[0] - lo[0]) * inv, (Xm[1] - lo[1]) * inv, (Xm[2] - lo[2]) * inv
     rx, ry, rz = 0.5 * ray[0], 0.5 * ray[1], 0.5 * ray[2]
-    for s in range(int(lam0 / (0.5 * voxel)) + 1, int(lam1 / (0.5 * voxel)) + 1):
-        ix = min(max(int(ox - s * rx), 0), dims[0] - 1)
-        iy = min(max(int(oy - s * ry), 0), ny - 1)
-        iz = min(max(int(oz - s * rz), 0), nz - 1)
-        v = (ix * ny + iy) * nz + iz
-        if stamp[v] != k and stamp_map[v] != m:
-            stamp[v] = k
-            stamp_map[v] = m
-            if weight > 0.0 and accumulator[v] == 0.0:
-                touched[count[slot]] = v
-                count[slot] += 1
-            accumulator[v] += weight
+    first, end = int(lam0 / (0.5 * voxel)) + 1, int(lam1 / (0.5 * voxel)) + 1
+    while first < end:
+        # a stretch of samples at a time: their voxels (a loop without branches, which the compiler runs
+        # on vectors), then each voxel's cache lines requested (the votes took one cache miss after
+        # another), then the votes. A sample in the voxel of the one before it is passed over: that
+        # voxel's stamps hold k already, or m.
+        last = min(first + len(buffer), end)
+        for q in range(last - first):
+            s = first + q
+            ix = min(max(int(ox - s * rx), 0), nx - 1)
+            iy = min(max(int(oy - s * ry), 0), ny - 1)
+            iz = min(max(int(oz - s * rz), 0), nz - 1)
+            buffer[q] = (ix * ny + iy) * nz + iz
+        n, previous = 0, -1
+        for q in range(last - first):
+            v = buffer[q]
+            if v != previous:
+                buffer[n], previous = v, v
+                n += 1
+                prefetch(stamp, v)
+                prefetch(stamp_map, v)
+                prefetch(accumulator, v)
+        for q in range(n):
+            v = buffer[q]
+            if stamp[v] != k and stamp_map[v] != m:
+                stamp[v] = k
+                stamp_map[v] = m
+                if weight > 0.0 and accumulator[v] == 0.0:
+                    touched[count[slot]] = v
+                    count[slot] += 1
+                accumulator[v] += weight
+        first = last
     return 1
 
 
@@ -611,6 +713,7 @@ def _vote_rays(
     first_map_id: int,
     lam_min: float,
 ) -> None:
+    buffer = np.empty(RAY_BUFFER, np.int64)
     for p in range(len(k)):
         _ray(
             first_id + k[p],
@@ -630,6 +733,7 @@ def _vote_rays(
             touched,
             count,
             0,
+            buffer,
         )
 
 
@@ -659,6 +763,7 @@ def _vote_boxes(
     stays outside a box's circumscribed sphere skips that box's exact test (it cannot cross the box), so
     every grid gets the votes ``_vote_rays`` would give it."""
     centre = 0.5 * (lo + hi)
+    buffer = np.empty(RAY_BUFFER, np.int64)
     radius2 = np.empty(len(lo))
     for b in range(len(lo)):  # (half diagonal)^2, with room for rounding
         half = 0.5 * (hi[b] - lo[b])
@@ -689,6 +794,7 @@ def _vote_boxes(
                 touched[b],
                 count,
                 b,
+                buffer,
             )
 
 
@@ -699,13 +805,36 @@ def _peaks(
     lower corner ``lo`` and cubic voxels of ``voxel`` m), 3 voxels apart, after pooling votes over 2 x 2 x 2
     neighbourhoods (the rays of one camera meet within a voxel or two); ``voted``: the flat indices of every
     voxel with votes, each once (``_Grid.voted``)."""
-    top, values = _top_pooled(np.ascontiguousarray(votes), voted, 64 * count)
-    order = np.lexsort((top, -values))  # most votes first, ties in voxel order
-    top, values = top[order], values[order]
-    positive = values > 0
-    cells = np.stack(np.unravel_index(top[positive], votes.shape), axis=1).astype(np.int64)
-    kept = _apart(cells, count, 3)  # plateaus of equal maxima: one per neighbourhood
-    return lo + (cells[kept] + 0.5) * voxel, values[positive][kept]
+    lo = np.ascontiguousarray(lo, dtype=np.float64)
+    return _peaks_compiled(np.ascontiguousarray(votes), voted, count, lo, float(voxel))
+
+
+@numba.njit(cache=True, nogil=True)
+def _peaks_compiled(
+    votes: np.ndarray, voted: np.ndarray, count: int, lo: np.ndarray, voxel: float
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """``_peaks`` in one compiled call (the fine grids of every coarse peak find theirs: a hundred calls
+    an image, whose numpy glue held the GIL the voting threads share)."""
+    top, values = _top_pooled(votes, voted, 64 * count)
+    # most votes first, ties in voxel order (``np.lexsort((top, -values))``: the pairs are distinct)
+    by_voxel = stable_argsort(top)
+    order = by_voxel[stable_argsort(-values[by_voxel])]
+    _, Y, Z = votes.shape
+    cells = np.empty((len(order), 3), np.int64)
+    ranked = np.empty(len(order))
+    n = 0
+    for k in order:
+        if values[k] > 0:
+            x, rest = divmod(top[k], Y * Z)
+            cells[n, 0], cells[n, 1], cells[n, 2] = x, rest // Z, rest % Z
+            ranked[n] = values[k]
+            n += 1
+    kept = _apart(cells[:n], count, 3)  # plateaus of equal maxima: one per neighbourhood
+    centres = np.empty((len(kept), 3))
+    for k in range(len(kept)):
+        for axis in range(3):
+            centres[k, axis] = lo[axis] + (cells[kept[k], axis] + 0.5) * voxel
+    return centres, ranked[kept]
 
 
 @numba.njit(cache=True, nogil=True)
@@ -750,6 +879,8 @@ def _top_pooled(
     heap_i = np.full(n, -1, np.int64)
     flat = votes.reshape(-1)
     for j in range(len(voted)):
+        if j + PREFETCH_AHEAD < len(voted):  # the voxels are scattered over the grid: one miss after another
+            prefetch(flat, voted[j + PREFETCH_AHEAD])
         v_index = int(voted[j])
         w = flat[v_index]
         # every pooled voxel it offers has an index >= its own: none can beat the root if (w, v_index) does not
@@ -832,58 +963,150 @@ def solve_locally(
     minimising their endpoint-to-line distances; the tolerance halves each round down to the score's own.
     The start itself is scored too, and the better of it and the solved pose returned: at a tolerance
     spanning a coarse voxel, wrong pairs can pull a start lying on the truth away from it (a demo photo's
-    start 0.2 m from the truth was solved to 1.3 m / 4 deg off, and dropped).
+    start 0.2 m from the truth was solved to 1.3 m / 4 deg off, and dropped). The rounds run twice: from
+    that tolerance, and from the score's own with no rotation slack.
     """
-    start = score_pose(image, lines3d, camera, cam_from_world, score_config, visible)
-    best = (cam_from_world, start) if start.value > 0 else None
-    for size, slack in ((size_m, config.rotation_slack_deg), (0.0, 0.0)):
-        tight = replace(config, rotation_slack_deg=slack)
-        solved = _solve_rounds(image, lines3d, camera, cam_from_world, size, tight, score_config, visible)
-        if solved is not None and (best is None or solved[1].value > best[1].value):
-            best = solved
-    return best
+    tolerances = np.array(
+        [
+            _start_tolerance(lines3d, camera, cam_from_world, size, slack, score_config)
+            for size, slack in ((size_m, config.rotation_slack_deg), (0.0, 0.0))
+        ]
+    )
+    # the start's score and both passes' rounds run in one compiled call: the starts solve in threads, and
+    # numpy glue between kernels held the GIL (the start's covering pairs at every tolerance it is tested at
+    # come from one pass over the image grid: ``score._tighter``)
+    segments = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
+    mask = np.ones(len(segments), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
+    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
+    found, pose, explained, unexplained, pairs, cover = _solve_compiled(
+        segments, np.ascontiguousarray(cam_from_world, dtype=np.float64), intrinsics, float(camera.width),
+        float(camera.height), score_config.min_depth_m, mask, image.segments, image.angles, image.lengths,
+        image.grid_ptr, image.grid_items, image.grid_w, image.grid_px, image.empty, image.cell_px,
+        image.empty_sum, tolerances, config.solve_rounds, score_config.distance_px,
+        float(np.radians(score_config.angle_deg)), float(np.radians(score_config.angle_deg + 2.0)),
+        score_config.unexplained_weight,
+    )  # fmt: skip
+    if not found:
+        return None
+    value = float(explained.sum()) - score_config.unexplained_weight * unexplained  # as score_projected
+    return pose, Score(value, explained, unexplained, pairs, cover)
 
 
-def _solve_rounds(
-    image: ImageLines,
+def _start_tolerance(
     lines3d: np.ndarray,
     camera: Camera,
     cam_from_world: np.ndarray,
     size_m: float,
-    config: SearchConfig,
+    slack_deg: float,
     score_config: ScoreConfig,
-    visible: np.ndarray | None,
-) -> tuple[np.ndarray, Score] | None:
-    """Returns ``solve_locally``'s rounds from a start (the pose they end at and its Score), or None."""
-    pose = cam_from_world
-    f = max(camera.fx, camera.fy)
-    tolerance = score_config.distance_px + _pixels_moved(lines3d, camera, pose, size_m)
-    tolerance += f * np.tan(np.radians(config.rotation_slack_deg))  # the rotation candidate's own error
-    # a round (the one-to-one covering pairs at the tolerance, then the pose fitted to them) runs in one
-    # compiled call (``_solve_round``): the orbit rivals of a tracked frame solve in threads, and numpy
-    # glue between kernels held the GIL
-    segments = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
-    mask = np.ones(len(segments), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
-    intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
-    size = (float(camera.width), float(camera.height))
-    angle_tol = float(np.radians(score_config.angle_deg + 2.0))
-    for _ in range(config.solve_rounds):
-        world_from_cam = _solve_round(
-            segments, np.ascontiguousarray(pose, dtype=np.float64), intrinsics, *size, score_config.min_depth_m,
-            mask, image.segments, image.angles, image.lengths, image.grid_ptr, image.grid_items, image.grid_w,
-            image.grid_px, tolerance, angle_tol, invert(pose),
-        )  # fmt: skip
-        if world_from_cam is None:
-            return None
-        pose = invert(world_from_cam)
-        if tolerance <= score_config.distance_px:
-            break
-        tolerance = max(0.5 * tolerance, score_config.distance_px)
-    return pose, score_pose(image, lines3d, camera, pose, score_config, visible)
+) -> float:
+    """Returns the tolerance (px) the rounds start at: the score's own, plus the pixels a camera shift of
+    ``size_m`` moves the median point, plus what a rotation off by ``slack_deg`` moves the image."""
+    tolerance = score_config.distance_px + _pixels_moved(lines3d, camera, cam_from_world, size_m)
+    tolerance += max(camera.fx, camera.fy) * np.tan(np.radians(slack_deg))  # the rotation candidate's error
+    return tolerance
 
 
 @numba.njit(cache=True, nogil=True)
-def _solve_round(
+def _solve_compiled(
+    lines3d: np.ndarray,
+    cam_from_world: np.ndarray,
+    intrinsics: np.ndarray,
+    width: float,
+    height: float,
+    near: float,
+    visible: np.ndarray,
+    segments: np.ndarray,
+    angles: np.ndarray,
+    lengths: np.ndarray,
+    grid_ptr: np.ndarray,
+    grid_items: np.ndarray,
+    grid_w: int,
+    grid_px: float,
+    empty: np.ndarray,
+    cell_px: float,
+    empty_sum: np.ndarray,
+    tolerances: np.ndarray,
+    rounds: int,
+    distance: float,
+    angle_score: float,
+    angle_solve: float,
+    weight: float,
+) -> tuple[bool, np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """``solve_locally`` from the start ``cam_from_world``: its score (at ``distance``, ``angle_score``),
+    then for each of the (2,) start ``tolerances`` the rounds (``_round``, at ``angle_solve``) and the score
+    of the pose they end at. Returns (False, ...) when nothing scores above 0 or solves, else (True, pose,
+    the Score's explained, unexplained, pairs and cover) of the best, as ``score_pose`` makes them."""
+    projected, index = _project_clipped(lines3d, cam_from_world, intrinsics, width, height, near, visible)
+    widest = max(distance, tolerances.max())
+    i, j, cover, gap, offsets = _covering_candidates(
+        segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected,
+        _angle_limits(lengths, widest, max(angle_score, angle_solve)), widest,
+    )  # fmt: skip
+    k = _tighter(i, gap, offsets, lengths, distance, angle_score)
+    best = _scored(
+        cam_from_world, projected, index, i[k], j[k], cover[k], len(segments), empty, cell_px, empty_sum
+    )
+    best_value = numpy_sum(best[1]) - weight * best[2]
+    found = best_value > 0
+    for tolerance in tolerances:
+        pose, solved = cam_from_world, True
+        for r in range(rounds):
+            if r == 0:  # the start's pairs at this tolerance
+                k = _tighter(i, gap, offsets, lengths, tolerance, angle_solve)
+                world_from_cam = _fit(
+                    lines3d, intrinsics, segments, i[k], index[j[k]], cover[k], invert_rigid(pose)
+                )
+            else:
+                world_from_cam = _round(
+                    lines3d, pose, intrinsics, width, height, near, visible, segments, angles, lengths, grid_ptr,
+                    grid_items, grid_w, grid_px, tolerance, angle_solve,
+                )  # fmt: skip
+            if world_from_cam is None:
+                solved = False
+                break
+            pose = invert_rigid(world_from_cam)
+            if tolerance <= distance:
+                break
+            tolerance = max(0.5 * tolerance, distance)
+        if not solved:
+            continue
+        p, q = _project_clipped(lines3d, pose, intrinsics, width, height, near, visible)
+        a, b, c = _covering_pairs(
+            segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, p, distance, angle_score
+        )
+        score = _scored(pose, p, q, a, b, c, len(segments), empty, cell_px, empty_sum)
+        value = numpy_sum(score[1]) - weight * score[2]
+        if not found or value > best_value:
+            best, best_value, found = score, value, True
+    return found, best[0], best[1], best[2], best[3], best[4]
+
+
+@numba.njit(cache=True, nogil=True)
+def _scored(
+    pose: np.ndarray,
+    projected: np.ndarray,
+    index: np.ndarray,
+    i: np.ndarray,
+    j: np.ndarray,
+    cover: np.ndarray,
+    n_image: int,
+    empty: np.ndarray,
+    cell_px: float,
+    empty_sum: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray, float, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns (pose, explained, unexplained, (P, 2) pairs (i, map row), cover) of ``score_projected`` from
+    the covering pairs (i, projected rows j, cover) of (K, 4) ``projected`` segments of map rows ``index``."""
+    explained = _union_lengths(i, cover, n_image)
+    unexplained = _length_in_cells(projected, empty, cell_px, empty_sum)
+    pairs = np.empty((len(i), 2), np.int64)
+    for k in range(len(i)):
+        pairs[k, 0], pairs[k, 1] = i[k], index[j[k]]
+    return pose, explained, unexplained, pairs, cover
+
+
+@numba.njit(cache=True, nogil=True)
+def _round(
     lines3d: np.ndarray,
     cam_from_world: np.ndarray,
     intrinsics: np.ndarray,
@@ -900,24 +1123,37 @@ def _solve_round(
     grid_px: float,
     distance: float,
     angle_tol: float,
-    world_from_cam: np.ndarray,
 ) -> np.ndarray | None:  # pragma: no cover - numba
-    """One round of ``_solve_rounds`` from a pose (``world_from_cam``: its inverse, by the caller): the
-    covering pairs at ``distance`` and ``angle_tol`` taken one per image and per map segment, longest cover
-    first (``Score.one_to_one``), then the pose fitted to them by ``_gauss_newton`` on the arrays
-    ``geometry.line_coefficients`` and ``LineProjection.build`` make, written out here in the same
-    operations and order (numpy cannot be called from here). Returns the new world_from_cam, or None
-    (fewer than 4 pairs, a singular system)."""
+    """One round of ``_solve_compiled`` from a pose: the covering pairs at ``distance`` and ``angle_tol``,
+    then the pose fitted to them (``_fit``). Returns the new world_from_cam, or None."""
     projected, index = _project_clipped(lines3d, cam_from_world, intrinsics, width, height, near, visible)
     i, j, cover = _covering_pairs(
         segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected, distance, angle_tol
     )
+    return _fit(lines3d, intrinsics, segments, i, index[j], cover, invert_rigid(cam_from_world))
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit(
+    lines3d: np.ndarray,
+    intrinsics: np.ndarray,
+    segments: np.ndarray,
+    i: np.ndarray,
+    rows: np.ndarray,
+    cover: np.ndarray,
+    world_from_cam: np.ndarray,
+) -> np.ndarray | None:  # pragma: no cover - numba
+    """The pose fitted to covering pairs (image segments i, map ``rows``, (P, 2) cover), starting from
+    ``world_from_cam``: the pairs taken one per image and per map segment, longest cover first
+    (``Score.one_to_one``), then ``_gauss_newton`` on the arrays ``geometry.line_coefficients`` and
+    ``LineProjection.build`` make, written out here in the same operations and order (numpy cannot be
+    called from here). Returns the new world_from_cam, or None (fewer than 4 pairs, a singular system)."""
     if len(i) < 4:
         return None
     order = stable_argsort(-(cover[:, 1] - cover[:, 0]))  # as greedy_pairs sorts
     pairs = np.empty((len(i), 2), np.int64)
     for k in range(len(order)):
-        pairs[k, 0], pairs[k, 1] = i[order[k]], index[j[order[k]]]
+        pairs[k, 0], pairs[k, 1] = i[order[k]], rows[order[k]]
     keep = _greedy(pairs, pairs[:, 0].max() + 1, pairs[:, 1].max() + 1)
     n = int(keep.sum())
     if n < 4:
@@ -947,9 +1183,20 @@ def _pixels_moved(lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarra
     if size_m == 0.0:  # no depth needed (the local solve's second pass)
         return 0.0
     depth = transform_depths(lines3d, cam_from_world)
-    depth = depth[depth > 0.1]
-    median = float(np.median(depth)) if len(depth) else 1.0
-    return max(camera.fx, camera.fy) * size_m / median
+    return max(camera.fx, camera.fy) * size_m / _median(depth[depth > 0.1], 1.0)
+
+
+def _median(values: np.ndarray, empty: float) -> float:
+    """Returns ``np.median`` of (n,) finite values to the last bit (the middle one, or the mean of the
+    middle two), ``empty`` for none: without np.median's checks, which cost more than the sort of a map's
+    few hundred depths (it runs once per local solve)."""
+    if len(values) == 0:
+        return empty
+    ordered = np.sort(values)
+    half = len(ordered) // 2
+    if len(ordered) % 2:
+        return float(ordered[half])
+    return float((ordered[half - 1] + ordered[half]) / 2)
 
 
 def transform_depths(lines3d: np.ndarray, cam_from_world: np.ndarray) -> np.ndarray:
@@ -972,9 +1219,13 @@ def _gauss_newton(
     (its ``evaluate``, with the normal equations summed in place). Returns the (4, 4) world_from_cam, or
     None for a singular system."""
     T = world_from_cam.copy()
-    J, step = np.empty(6), np.empty(6)
+    step = np.empty(6)
+    # per point: its Jacobian row J, w2 J (Huber's squared weight w2) and error e, then the normal
+    # equations H = sum (w2 J) J^T, rhs = -sum (w2 J) e summed row by row: each entry sums its terms in
+    # point order as a sum in place per point would, in registers rather than memory
+    J, weighted, errors = np.empty((len(points), 6)), np.empty((len(points), 6)), np.empty(len(points))
+    H, rhs = np.empty((6, 6)), np.empty(6)
     for _ in range(iterations):
-        H, rhs = np.zeros((6, 6)), np.zeros(6)
         for i in range(len(points)):
             d0, d1, d2 = points[i, 0] - T[0, 3], points[i, 1] - T[1, 3], points[i, 2] - T[2, 3]
             X = d0 * T[0, 0] + d1 * T[1, 0] + d2 * T[2, 0]  # camera frame: (x - t) @ R
@@ -985,13 +1236,13 @@ def _gauss_newton(
             e = num * inv_z + c[i]
             g0, g1 = a[i] * inv_z, b[i] * inv_z
             g2 = 0.0 if Z < min_depth else -num * inv_z * inv_z
-            J[0], J[1], J[2] = g1 * Z - g2 * Y, g2 * X - g0 * Z, g0 * Y - g1 * X
-            J[3], J[4], J[5] = -g0, -g1, -g2
+            J[i, 0], J[i, 1], J[i, 2] = g1 * Z - g2 * Y, g2 * X - g0 * Z, g0 * Y - g1 * X
+            J[i, 3], J[i, 4], J[i, 5] = -g0, -g1, -g2
             w2 = min(1.0, 2.0 / max(abs(e), 1e-9))  # Huber at 2 px, squared weight
             for r in range(6):
-                rhs[r] -= w2 * J[r] * e
-                for q in range(6):
-                    H[r, q] += w2 * J[r] * J[q]
+                weighted[i, r] = w2 * J[i, r]
+            errors[i] = e
+        _normal_equations(J, weighted, errors, H, rhs)
         if not _solve_symmetric(H, rhs, 1e12, step):
             return None
         delta = np.eye(4)
@@ -1018,6 +1269,27 @@ def _gauss_newton(
         if np.sqrt(np.sum(step**2)) < 1e-7:
             break
     return T
+
+
+@numba.njit(cache=True, nogil=True)
+def _normal_equations(
+    J: np.ndarray, weighted: np.ndarray, errors: np.ndarray, H: np.ndarray, rhs: np.ndarray
+) -> None:  # pragma: no cover - numba
+    """Fills (6, 6) ``H`` with sum_i weighted_i J_i^T and (6,) ``rhs`` with -sum_i weighted_i e_i over the
+    (n, 6) rows ``J`` and ``weighted`` and the (n,) ``errors``, each entry's terms added in row order."""
+    for r in range(6):
+        h0 = h1 = h2 = h3 = h4 = h5 = g = 0.0
+        for i in range(len(errors)):
+            w = weighted[i, r]
+            h0 += w * J[i, 0]
+            h1 += w * J[i, 1]
+            h2 += w * J[i, 2]
+            h3 += w * J[i, 3]
+            h4 += w * J[i, 4]
+            h5 += w * J[i, 5]
+            g -= w * errors[i]
+        H[r, 0], H[r, 1], H[r, 2], H[r, 3], H[r, 4], H[r, 5] = h0, h1, h2, h3, h4, h5
+        rhs[r] = g
 
 
 @numba.njit(cache=True, nogil=True)

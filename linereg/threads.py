@@ -7,6 +7,7 @@ any number of threads.
 
 from __future__ import annotations
 
+import itertools
 import threading
 from collections.abc import Callable
 from typing import Any, TypeVar
@@ -62,13 +63,15 @@ def both(first: Callable[[], A], second: Callable[[], B]) -> tuple[A, B]:
 
 
 def map_threads(f: Callable[[T], A], items: list[T], limit: int) -> list[A]:
-    """Returns ``[f(item) for item in items]``, the items dealt among up to ``limit`` threads
-    (``thread_count``; for work that releases the GIL and whose result depends on its item alone)."""
+    """Returns ``[f(item) for item in items]``, the items taken in turn by up to ``limit`` threads, each
+    the next item when it is free (``thread_count``; for work that releases the GIL and whose result
+    depends on its item alone; dealt in advance, one thread could be left with the slow ones)."""
     out: list[Any] = [None] * len(items)
     workers = thread_count(min(limit, len(items)))
+    taken = itertools.count()  # the next item; next() on it is atomic under the GIL
 
     def run(worker: int) -> None:
-        for i in range(worker, len(items), workers):
+        while (i := next(taken)) < len(items):
             out[i] = f(items[i])
 
     run_parallel(run, workers)

@@ -318,7 +318,7 @@ def test_a_views_points_are_the_maps_own_restricted_to_it():
 
 
 def test_a_solve_from_near_the_truth_of_exact_lines_ends_on_it(rng):
-    """Noise-free lines, no outliers: the rounds (each one compiled call, ``search._solve_round``) bring a
+    """Noise-free lines, no outliers: the rounds (one compiled call, ``search._solve_compiled``) bring a
     start 1 degree and 2 % of the depth off back onto the true pose."""
     config = RegisterConfig()
     scene = paper_scene(rng, 80, 0.0, 0.0, 0.0)
