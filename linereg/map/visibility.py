@@ -43,6 +43,7 @@ class Visibility:
         self._occluders: tuple[np.ndarray, np.ndarray] | None = None
         self._pieces: tuple[np.ndarray, np.ndarray] | None = None
         self._pvs: dict[tuple[int, ...], np.ndarray] = {}
+        self._chunks: _Chunks | None = None
         # the unions of the cells of a box, newest last: a tracker asks for the same few boxes each frame
         self._unions: dict[tuple[int, ...], np.ndarray] = {}
 
@@ -54,8 +55,10 @@ class Visibility:
         """Returns ((K, 6) float64 visible world sub-segments, (K,) int64 row of the segment each came
         from) of the rows ``index`` (None: all) seen by the pinhole ``camera`` at (4, 4) ``cam_from_world``."""
         cfg = self.config
-        rows = np.arange(len(self.segments)) if index is None else np.asarray(index, dtype=np.int64)
         cam_from_world = np.asarray(cam_from_world, dtype=np.float64)
+        # the chunks of nearby segments wholly outside the view's pyramid first: a query's work then follows
+        # what its view reaches, not the map's size (on a city of tiled blocks most chunks lie aside)
+        rows = self._chunk_set().rows_in_view(camera, cam_from_world, cfg.min_depth_m, index)
         R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
         seg = self.segments[rows]
         a, b = seg[:, :3] @ R.T + t, seg[:, 3:] @ R.T + t
@@ -80,6 +83,11 @@ class Visibility:
         points = world[:, :3] + tt[:, None] * (world[:, 3:] - world[:, :3])
         seen = self._unoccluded(points, camera_center(cam_from_world))
         return _runs(self.segments[rows], rows, owner, tt, seen, count)
+
+    def _chunk_set(self) -> _Chunks:
+        if self._chunks is None:
+            self._chunks = _Chunks(self.segments)
+        return self._chunks
 
     def footprint(self, camera: Camera, cam_from_world: np.ndarray, cell_px: float) -> np.ndarray | None:
         """Returns (h, w) bool cells of ``cell_px`` pixels (cell (r, c) centred on pixel
@@ -216,6 +224,72 @@ class Visibility:
         return self._pieces
 
 
+# ---------------------------------------------------------------------------------------------- chunks
+
+
+CHUNK_SEGMENTS = 64  # segments per chunk of the frustum's first cut, on average
+
+
+class _Chunks:
+    """The map's segments grouped by the cell of their midpoints (cells sized for ``CHUNK_SEGMENTS`` a cell
+    on average), each group with the box of its segments' ends: a group whose box lies wholly outside a face
+    of a view's pyramid holds no segment ``_in_pyramid`` would keep."""
+
+    def __init__(self, segments: np.ndarray):
+        self.count = len(segments)
+        ends = segments.reshape(-1, 2, 3)
+        if self.count == 0:
+            self.order, self.starts = np.zeros(0, np.int64), np.zeros(1, np.int64)
+            self.centre, self.half = np.zeros((0, 3)), np.zeros((0, 3))
+            return
+        mid = ends.mean(axis=1)
+        lo = mid.min(axis=0)
+        cell = _cell_size(np.ptp(mid, axis=0), max(self.count // CHUNK_SEGMENTS, 1))
+        key = np.floor((mid - lo) / cell).astype(np.int64)
+        dims = key.max(axis=0) + 1
+        flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
+        self.order = np.argsort(flat, kind="stable")
+        first = np.r_[True, flat[self.order][1:] != flat[self.order][:-1]]
+        self.starts = np.r_[np.flatnonzero(first), self.count].astype(np.int64)
+        low = np.minimum.reduceat(ends.min(axis=1)[self.order], self.starts[:-1])
+        high = np.maximum.reduceat(ends.max(axis=1)[self.order], self.starts[:-1])
+        self.centre, self.half = 0.5 * (low + high), 0.5 * (high - low)
+
+    def rows_in_view(
+        self, camera: Camera, cam_from_world: np.ndarray, near: float, index: np.ndarray | None
+    ) -> np.ndarray:
+        """Returns the (k,) int64 rows of ``index`` (None: all, in order) whose chunk's box is not wholly
+        outside a face of the pyramid ``_in_pyramid`` tests nor wholly nearer than ``near``."""
+        R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+        normals = np.c_[_inward_normals(camera), [0.0, 0.0, 1.0]]  # (3, 5) camera frame; the last: depth
+        w = R.T @ normals  # (3, 5): the same in world coordinates, n . (R X + t) = (R^T n) . X + n . t
+        offset = normals.T @ t - np.r_[0.0, 0.0, 0.0, 0.0, near]
+        # the largest value of each face's function over a box (its centre's, plus the half-sizes along
+        # |w|); a face the whole box lies outside of by more than rounding rules the box out
+        reach = self.centre @ w + self.half @ np.abs(w) + offset
+        scale = 1e-9 * (1.0 + np.abs(self.centre @ w).max(axis=1, initial=0.0) + np.abs(offset).max())
+        kept = np.flatnonzero((reach >= -scale[:, None]).all(axis=1))
+        counts = self.starts[kept + 1] - self.starts[kept]
+        owner = np.repeat(self.starts[kept] - np.cumsum(counts) + counts, counts)
+        mask = np.zeros(self.count, dtype=bool)
+        mask[self.order[np.arange(len(owner)) + owner]] = True
+        if index is None:
+            return np.flatnonzero(mask)
+        index = np.asarray(index, dtype=np.int64)
+        return index[mask[index]]
+
+
+def _cell_size(extent: np.ndarray, cells: int) -> float:
+    """Returns the edge of cubic cells that cut a box of (3,) ``extent`` into about ``cells`` cells, an axis
+    thinner than a cell counting as one cell thick."""
+    extent = np.sort(np.maximum(extent, 1e-9))[::-1]
+    for used in (3, 2, 1):
+        size = float((np.prod(extent[:used]) / cells) ** (1.0 / used))
+        if used == 1 or extent[used - 1] >= size:
+            return max(size, 1e-9)
+    return 1.0  # not reached
+
+
 # ---------------------------------------------------------------------------------------------- helpers
 
 
@@ -229,7 +303,15 @@ def _in_pyramid(a: np.ndarray, b: np.ndarray, camera: Camera, near: float) -> np
     nearer than ``near`` or both outside one side face of the pyramid through the camera centre and the
     image border widened by a pixel (the exact clipping's border lies half a pixel out): the outside of a
     face is convex, so the whole segment lies there and no part of it can project into the image."""
-    inward = np.array(
+    inward = _inward_normals(camera)
+    outside = ((a @ inward) < 0.0) & ((b @ inward) < 0.0)
+    return ~(outside.any(axis=1) | ((a[:, 2] < near) & (b[:, 2] < near)))
+
+
+def _inward_normals(camera: Camera) -> np.ndarray:
+    """Returns (3, 4) the camera-frame inward normals of the side faces of the pyramid through the camera
+    centre and the image border widened by a pixel (``_in_pyramid``)."""
+    return np.array(
         [
             [1.0, 0.0, (camera.cx + 1.5) / camera.fx],  # u >= -1.5
             [-1.0, 0.0, (camera.width + 0.5 - camera.cx) / camera.fx],  # u <= width + 0.5
@@ -237,8 +319,6 @@ def _in_pyramid(a: np.ndarray, b: np.ndarray, camera: Camera, near: float) -> np
             [0.0, -1.0, (camera.height + 0.5 - camera.cy) / camera.fy],  # v <= height + 0.5
         ]
     ).T
-    outside = ((a @ inward) < 0.0) & ((b @ inward) < 0.0)
-    return ~(outside.any(axis=1) | ((a[:, 2] < near) & (b[:, 2] < near)))
 
 
 def _clip_near(za: np.ndarray, zb: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
