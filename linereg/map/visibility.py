@@ -4,7 +4,8 @@
 image and each sample ray-cast from the camera centre against the surface mesh (open3d's
 ``RaycastingScene``); runs of visible samples are the visible sub-segments. A segment lying ON a surface
 (a plane's boundary, a crease) meets it at its own range, so a sample is hidden only by a surface nearer
-than its range by a tolerance that grows with range.
+than its range by a tolerance that grows with range. Before any of it, chunks of nearby segments whose box
+lies wholly outside the view's pyramid are left out (``_Chunks``): on a large map most of them.
 
 ``potentially_visible``: the segments visible from SOME point of an axis-aligned box, conservatively. A
 piece of a segment is hidden from the whole box by one convex occluder (a surface rectangle) exactly when
