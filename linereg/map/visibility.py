@@ -234,26 +234,27 @@ CHUNK_SEGMENTS = 64  # segments per chunk of the frustum's first cut, on average
 class _Chunks:
     """The map's segments grouped by the cell of their midpoints (cells sized for ``CHUNK_SEGMENTS`` a cell
     on average), each group with the box of its segments' ends: a group whose box lies wholly outside a face
-    of a view's pyramid holds no segment ``_in_pyramid`` would keep."""
+    of a view's pyramid holds no segment ``_in_pyramid`` would keep. ``chunk_of``: (M,) each segment's
+    group; ``centre``, ``half``: (C, 3) each group's box."""
 
     def __init__(self, segments: np.ndarray):
-        self.count = len(segments)
         ends = segments.reshape(-1, 2, 3)
-        if self.count == 0:
-            self.order, self.starts = np.zeros(0, np.int64), np.zeros(1, np.int64)
+        if len(segments) == 0:
+            self.chunk_of = np.zeros(0, np.int64)
             self.centre, self.half = np.zeros((0, 3)), np.zeros((0, 3))
             return
         mid = ends.mean(axis=1)
-        lo = mid.min(axis=0)
-        cell = _cell_size(np.ptp(mid, axis=0), max(self.count // CHUNK_SEGMENTS, 1))
-        key = np.floor((mid - lo) / cell).astype(np.int64)
+        cell = _cell_size(np.ptp(mid, axis=0), max(len(segments) // CHUNK_SEGMENTS, 1))
+        key = np.floor((mid - mid.min(axis=0)) / cell).astype(np.int64)
         dims = key.max(axis=0) + 1
-        flat = (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2]
-        self.order = np.argsort(flat, kind="stable")
-        first = np.r_[True, flat[self.order][1:] != flat[self.order][:-1]]
-        self.starts = np.r_[np.flatnonzero(first), self.count].astype(np.int64)
-        low = np.minimum.reduceat(ends.min(axis=1)[self.order], self.starts[:-1])
-        high = np.maximum.reduceat(ends.max(axis=1)[self.order], self.starts[:-1])
+        # (M,) each segment's chunk: its cell's rank among the occupied cells
+        _, self.chunk_of = np.unique(
+            (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2], return_inverse=True
+        )
+        chunks = int(self.chunk_of.max()) + 1
+        low, high = np.full((chunks, 3), np.inf), np.full((chunks, 3), -np.inf)
+        np.minimum.at(low, self.chunk_of, ends.min(axis=1))
+        np.maximum.at(high, self.chunk_of, ends.max(axis=1))
         self.centre, self.half = 0.5 * (low + high), 0.5 * (high - low)
 
     def rows_in_view(
@@ -269,15 +270,11 @@ class _Chunks:
         # |w|); a face the whole box lies outside of by more than rounding rules the box out
         reach = self.centre @ w + self.half @ np.abs(w) + offset
         scale = 1e-9 * (1.0 + np.abs(self.centre @ w).max(axis=1, initial=0.0) + np.abs(offset).max())
-        kept = np.flatnonzero((reach >= -scale[:, None]).all(axis=1))
-        counts = self.starts[kept + 1] - self.starts[kept]
-        owner = np.repeat(self.starts[kept] - np.cumsum(counts) + counts, counts)
-        mask = np.zeros(self.count, dtype=bool)
-        mask[self.order[np.arange(len(owner)) + owner]] = True
+        kept = (reach >= -scale[:, None]).all(axis=1)
         if index is None:
-            return np.flatnonzero(mask)
+            return np.flatnonzero(kept[self.chunk_of])
         index = np.asarray(index, dtype=np.int64)
-        return index[mask[index]]
+        return index[kept[self.chunk_of[index]]]
 
 
 def _cell_size(extent: np.ndarray, cells: int) -> float:
