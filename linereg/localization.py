@@ -8,6 +8,7 @@ from collections.abc import Callable
 import numpy as np
 
 from .camera import Camera
+from .chunks import Chunks
 from .config import LineDetectConfig, RegisterConfig
 from .directions import subset_clusters
 from .geometry import segment_lengths
@@ -58,8 +59,8 @@ def localize_segments(
 
 def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig) -> MapView:
     """Returns the MapView of the map's segments ``index`` (None: all): clusters restricted to them, their
-    corner points (the whole map's, computed once and kept by the map, restricted to them:
-    ``points.subset_points``) and signatures."""
+    corner points and chunks (the whole map's, computed once and kept by the map, restricted to them:
+    ``points.subset_points``, ``Chunks.subset``) and signatures."""
     if index is None:
         cached = line_map.cache.get("view")
         if cached is None or cached[0] != config.points:
@@ -70,7 +71,7 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
             footprint = line_map.surface_footprint if _has_surfaces(line_map) else None
             view = MapView(
                 segments, line_map.clusters, points, signatures, parts=parts, accuracy_m=line_map.accuracy_m,
-                footprint=footprint,
+                footprint=footprint, chunks=Chunks.of_map(segments),
             )  # fmt: skip
             cached = (config.points, view)
             line_map.cache["view"] = cached
@@ -79,6 +80,7 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
     clusters = subset_clusters(line_map.clusters, index, segment_lengths(segments))
     points = subset_points(map_view(line_map, None, config).points, index, len(line_map.segments))
     signatures = map_signatures(points, clusters.labels, clusters.directions)
+    whole = map_view(line_map, None, config).chunks
     return MapView(
         segments,
         clusters,
@@ -87,6 +89,7 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
         parts=_subset_parts(line_map, index),
         accuracy_m=line_map.accuracy_m,
         footprint=line_map.surface_footprint if _has_surfaces(line_map) else None,
+        chunks=None if whole is None else whole.subset(index),
     )
 
 

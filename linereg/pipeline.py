@@ -19,6 +19,7 @@ from typing import TypeVar
 import numpy as np
 
 from .camera import Camera
+from .chunks import Chunks
 from .config import DecideConfig, RegisterConfig, ScoreConfig
 from .copies import copy_starts
 from .directions import DirectionClusters
@@ -109,6 +110,9 @@ class MapView:
     # (camera, cam_from_world, cell_px) -> the cells whose ray meets the map's surfaces
     # (``LineMap.surface_footprint``), None without surfaces
     footprint: Callable[[Camera, np.ndarray, float], np.ndarray | None] | None = None
+    # the segments' chunks (``chunks.Chunks``; None: none, a small map): what a pose's projection passes
+    # over first, the same result sooner
+    chunks: Chunks | None = None
 
 
 def register_undistorted(
@@ -211,6 +215,7 @@ def _search_and_decide(
             config.score,
             view.visible,
             None if view.parts is None else lambda T: view_score(view, image, camera, T, config.score)[0],
+            view.chunks,
         )
     # a prior is a bound: poses the local solves or the refinement carry out of it are neither answers nor
     # rivals (``priors.admits_pose``)
@@ -587,7 +592,9 @@ def view_score(
     ``view.visible``."""
     if view.parts is None:
         seen = view.segments if view.visible is None else view.segments[view.visible]
-        return score_pose(image, view.segments, camera, cam_from_world, config, view.visible), seen
+        return score_pose(
+            image, view.segments, camera, cam_from_world, config, view.visible, view.chunks
+        ), seen
     parts, rows = view.parts(camera, cam_from_world)
     score = score_pose(image, parts, camera, cam_from_world, config)
     pairs = np.c_[score.pairs[:, 0], rows[score.pairs[:, 1]]] if len(score.pairs) else score.pairs
@@ -647,7 +654,7 @@ def copy_rivals(
     inside = [(T, size) for T, size, _ in starts if _in_regions(camera_center(T), regions)]
 
     def where_it_stands(start: tuple[np.ndarray, float]) -> Score:
-        return score_pose(image, view.segments, camera, start[0], config.score, view.visible)
+        return score_pose(image, view.segments, camera, start[0], config.score, view.visible, view.chunks)
 
     scores = map_threads(where_it_stands, inside, config.search.max_threads)  # each copy's own
     standing = [(score, -1, T, size) for score, (T, size) in zip(scores, inside, strict=True)]
@@ -656,7 +663,9 @@ def copy_rivals(
     orbits = _orbit_starts(cam_from_world, view.segments[matched], dc)
     starts_kept = [(T, size) for _, _, T, size in kept]
     starts_kept += [(T, size) for T, size, _ in orbits if _in_regions(camera_center(T), regions)]
-    solved = solve_all(starts_kept, image, view.segments, camera, config.search, config.score, view.visible)
+    solved = solve_all(
+        starts_kept, image, view.segments, camera, config.search, config.score, view.visible, view.chunks
+    )
     return [s for s in solved if s is not None]
 
 
@@ -941,7 +950,7 @@ def no_worse(
     pairs can pull it off what the score found (18 of the 71 refinements of the shared real photos with a
     rough prior lost more than that). The score decides; a refinement that loses by the margin failed."""
     # scored as ``refine_pose`` scores its result (the search's own score may be occlusion-aware)
-    before = score_pose(image, view.segments, camera, start, config.score, view.visible)
+    before = score_pose(image, view.segments, camera, start, config.score, view.visible, view.chunks)
     if before.value <= 0.0 or refined.score.value >= (1.0 - config.decide.margin) * before.value:
         return refined
     return replace(refined, cam_from_world=start, score=before)

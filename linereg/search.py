@@ -25,6 +25,7 @@ import numba
 import numpy as np
 
 from .camera import Camera
+from .chunks import NO_CHUNKS, Chunks
 from .config import ScoreConfig, SearchConfig
 from .geometry import camera_center, make_cam_from_world, rotation_error_deg
 from .kernels import invert_rigid, jacobi_rotation, numpy_sum, prefetch, stable_argsort
@@ -84,6 +85,7 @@ def search(
     score_config: ScoreConfig,
     visible: np.ndarray | None = None,
     seen_score: Callable[[np.ndarray], Score] | None = None,
+    chunks: Chunks | None = None,
 ) -> tuple[list[Found], SearchStats]:
     """Returns (the solved poses, best score first; SearchStats) for camera centres in ``regions`` (boxes
     ((3,) low, (3,) high corner) in world metres, each voted on its own grid: a box near the map gets fine
@@ -94,7 +96,8 @@ def search(
     camera: undistorted; visible: (M,) bool of segments that take part in the score (None: all);
     seen_score: a pose's Score with what the map's surfaces hide from it (``pipeline.view_score``; None: the
     map hides nothing): the poses are ranked by it (a pose of the truth is scored with the facades behind
-    the building hidden, the same pose unhidden can score below zero).
+    the building hidden, the same pose unhidden can score below zero); chunks: of ``lines3d`` (None: none),
+    for the local solves' projections (``score.project_clipped``).
     """
     boxes = []
     for lo, hi in regions:
@@ -111,14 +114,14 @@ def search(
     starts = [
         (make_cam_from_world(rotations[r], -rotations[r] @ centre), size) for _, r, centre, size in peaks
     ]
-    solved = solve_all(starts, image, lines3d, camera, quick, score_config, visible)
+    solved = solve_all(starts, image, lines3d, camera, quick, score_config, visible, chunks)
     stats.solved += len(peaks)
     screened = [
         (s[1], r, s[0], size) for s, (_, r, _, size) in zip(solved, peaks, strict=True) if s is not None
     ]
     best = screen(screened, config, seen_score)
     starts = [(pose, 0.5 * size) for _, _, pose, size in best]
-    solved = solve_all(starts, image, lines3d, camera, config, score_config, visible)
+    solved = solve_all(starts, image, lines3d, camera, config, score_config, visible, chunks)
     found = [
         Found(s[0], s[1] if seen_score is None else seen_score(s[0]), r)
         for s, (_, r, _, _) in zip(solved, best, strict=True)
@@ -161,7 +164,9 @@ def _vote_peaks(
         with locks[r]:  # made once, by the first of the rotation's tasks taken
             made = rays[r]
             if made is None:
-                made = rays[r] = _pair_rays(image_pts, map_pts, signatures, camera, rotations[r], config)
+                made = rays[r] = _pair_rays(
+                    image_pts, map_pts, signatures, camera, rotations[r], config, boxes
+                )
             return made
 
     def vote(worker: int) -> None:
@@ -251,12 +256,13 @@ def solve_all(
     config: SearchConfig,
     score_config: ScoreConfig,
     visible: np.ndarray | None,
+    chunks: Chunks | None = None,
 ) -> list[tuple[np.ndarray, Score] | None]:
     """Returns ``solve_locally`` of each (start pose, size) in order, the starts shared among threads as
     the rotations are (the compiled kernels release the GIL; each result depends on its start alone)."""
 
     def solve(start: tuple[np.ndarray, float]) -> tuple[np.ndarray, Score] | None:
-        return solve_locally(image, lines3d, camera, *start, config, score_config, visible)
+        return solve_locally(image, lines3d, camera, *start, config, score_config, visible, chunks)
 
     return map_threads(solve, starts, config.max_threads)
 
@@ -479,12 +485,21 @@ def _pair_rays(
     camera: Camera,
     R: np.ndarray,
     config: SearchConfig,
+    boxes: list[_Box] | None = None,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Returns the rays of every compatible (image point k, map point m) pair under rotation R:
     ((P,) k, (P,) m, (P,) farthest lambda, (N, 3) each image point's viewing direction, world frame); the
-    camera centre lies on ``X_m - lambda direction_k``, 0 < lambda <= farthest."""
-    directions = np.c_[image_pts.positions, np.ones(len(image_pts))] @ np.linalg.inv(camera.K).T
-    directions = (directions / np.linalg.norm(directions, axis=1, keepdims=True)) @ R
+    camera centre lies on ``X_m - lambda direction_k``, 0 < lambda <= farthest. With ``boxes``, only the
+    pairs whose map point some camera centre in one of them sees inside the image points' cone
+    (``in_swept_view``): the others' rays cannot enter a box, and vote nowhere."""
+    rays = np.c_[image_pts.positions, np.ones(len(image_pts))] @ np.linalg.inv(camera.K).T
+    directions = (rays / np.linalg.norm(rays, axis=1, keepdims=True)) @ R
+    order, keys, loose = signatures.order, signatures.keys, signatures.loose
+    if boxes is not None and len(rays):
+        usable = in_swept_view(map_pts.positions, rays[:, :2], R, [(lo, hi) for lo, hi, _, _ in boxes])
+        if not usable.all():  # the signature lists without the others: the same pairs, in the same order
+            kept = usable[order]
+            order, keys, loose = order[kept], keys[kept], loose[usable[loose]]
     k, m, lam = _pairs_kernel(
         image_pts.positions,
         np.nan_to_num(image_pts.arms),
@@ -494,10 +509,10 @@ def _pair_rays(
         np.ascontiguousarray(np.nan_to_num(map_pts.arms) @ R.T),
         map_pts.two_armed,
         map_pts.arm_lengths,
-        signatures.order,
-        signatures.keys,
+        order,
+        keys,
         signatures.swapped,
-        signatures.loose,
+        loose,
         np.ascontiguousarray(signatures.directions @ R.T),
         camera.K,
         np.cos(np.radians(config.arm_angle_deg)),
@@ -591,6 +606,50 @@ def _ray(
                 accumulator[v] += weight
         first = last
     return 1
+
+
+def in_swept_view(
+    X: np.ndarray, normalized: np.ndarray, R: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]]
+) -> np.ndarray:
+    """Returns (P,) bool: may a camera of (3, 3) world -> camera rotation R with its centre in one of the
+    ``boxes`` ((3,) low, (3,) high) see the (P, 3) world point inside the cone of the (N, 2) normalized
+    image coordinates (x/z, y/z) ``normalized`` (the cone through their bounding rectangle, in front of
+    the camera)?
+
+    X - c, c in a box, seen from the camera: a point lies outside a face of the cone (inward normal n,
+    camera frame) from every centre of the box when n . R (X - c) < 0 for the c maximising it, i.e. when
+    w . X < min over the box of w . c = w . centre - |w| . half, w = R^T n. False only when that holds for
+    a face of every box (with room for rounding): a ray X - lambda d of an image point's direction d,
+    lambda > 0, enters a box only at a centre that sees X along d."""
+    x0, y0 = normalized.min(axis=0)
+    x1, y1 = normalized.max(axis=0)
+    inward = np.array([[1.0, 0.0, -x0], [-1.0, 0.0, x1], [0.0, 1.0, -y0], [0.0, -1.0, y1], [0.0, 0.0, 1.0]])
+    w = np.ascontiguousarray(inward @ R)  # (5, 3): rows R^T n
+    least = np.array([w @ (0.5 * (lo + hi)) - np.abs(w) @ (0.5 * (hi - lo)) for lo, hi in boxes])
+    room = 1e-9 * (1.0 + np.abs(least) + np.array([np.abs(w) @ np.abs(0.5 * (lo + hi)) for lo, hi in boxes]))
+    return _inside_faces(np.ascontiguousarray(X, dtype=np.float64).reshape(-1, 3), w, least - room)
+
+
+@numba.njit(cache=True, nogil=True)
+def _inside_faces(X: np.ndarray, w: np.ndarray, least: np.ndarray) -> np.ndarray:  # pragma: no cover - numba
+    """Returns (P,) bool: for some box b, w[f] . X[p] >= least[b, f] less rounding's room (1e-9 of
+    |w[f]| . |X[p]|) for every face f of (F, 3) ``w``; ``least``: (B, F)."""
+    out = np.zeros(len(X), np.bool_)
+    values, room = np.empty(len(w)), np.empty(len(w))
+    for p in range(len(X)):
+        for f in range(len(w)):
+            values[f] = w[f, 0] * X[p, 0] + w[f, 1] * X[p, 1] + w[f, 2] * X[p, 2]
+            room[f] = 1e-9 * (abs(w[f, 0] * X[p, 0]) + abs(w[f, 1] * X[p, 1]) + abs(w[f, 2] * X[p, 2]))
+        for b in range(len(least)):
+            inside = True
+            for f in range(len(w)):
+                if values[f] < least[b, f] - room[f]:
+                    inside = False
+                    break
+            if inside:
+                out[p] = True
+                break
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -954,9 +1013,11 @@ def solve_locally(
     config: SearchConfig,
     score_config: ScoreConfig,
     visible: np.ndarray | None = None,
+    chunks: Chunks | None = None,
 ) -> tuple[np.ndarray, Score] | None:
     """Returns (cam_from_world, Score) of the best pose near a start pose whose camera centre is known to
-    within ``size_m``, or None when nothing matches there.
+    within ``size_m``, or None when nothing matches there (``chunks``: of ``lines3d``, or None; see
+    ``score.project_clipped``).
 
     Rounds: the score's covering pairs at a tolerance spanning the uncertainty (the pixels ``size_m`` moves
     the median matched point), one per image and per map segment (``Score.one_to_one``), then the pose
@@ -978,9 +1039,10 @@ def solve_locally(
     segments = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
     mask = np.ones(len(segments), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
+    c = chunks or NO_CHUNKS
     found, pose, explained, unexplained, pairs, cover = _solve_compiled(
         segments, np.ascontiguousarray(cam_from_world, dtype=np.float64), intrinsics, float(camera.width),
-        float(camera.height), score_config.min_depth_m, mask, image.segments, image.angles, image.lengths,
+        float(camera.height), score_config.min_depth_m, mask, c.of, c.centre, c.half, image.segments, image.angles, image.lengths,
         image.grid_ptr, image.grid_items, image.grid_w, image.grid_px, image.empty, image.cell_px,
         image.empty_sum, tolerances, config.solve_rounds, score_config.distance_px,
         float(np.radians(score_config.angle_deg)), float(np.radians(score_config.angle_deg + 2.0)),
@@ -1016,6 +1078,9 @@ def _solve_compiled(
     height: float,
     near: float,
     visible: np.ndarray,
+    chunk_of: np.ndarray,
+    chunk_centre: np.ndarray,
+    chunk_half: np.ndarray,
     segments: np.ndarray,
     angles: np.ndarray,
     lengths: np.ndarray,
@@ -1037,7 +1102,9 @@ def _solve_compiled(
     then for each of the (2,) start ``tolerances`` the rounds (``_round``, at ``angle_solve``) and the score
     of the pose they end at. Returns (False, ...) when nothing scores above 0 or solves, else (True, pose,
     the Score's explained, unexplained, pairs and cover) of the best, as ``score_pose`` makes them."""
-    projected, index = _project_clipped(lines3d, cam_from_world, intrinsics, width, height, near, visible)
+    projected, index = _project_clipped(
+        lines3d, cam_from_world, intrinsics, width, height, near, visible, chunk_of, chunk_centre, chunk_half
+    )
     widest = max(distance, tolerances.max())
     i, j, cover, gap, offsets = _covering_candidates(
         segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected,
@@ -1059,8 +1126,8 @@ def _solve_compiled(
                 )
             else:
                 world_from_cam = _round(
-                    lines3d, pose, intrinsics, width, height, near, visible, segments, angles, lengths, grid_ptr,
-                    grid_items, grid_w, grid_px, tolerance, angle_solve,
+                    lines3d, pose, intrinsics, width, height, near, visible, chunk_of, chunk_centre, chunk_half,
+                    segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, tolerance, angle_solve,
                 )  # fmt: skip
             if world_from_cam is None:
                 solved = False
@@ -1071,7 +1138,9 @@ def _solve_compiled(
             tolerance = max(0.5 * tolerance, distance)
         if not solved:
             continue
-        p, q = _project_clipped(lines3d, pose, intrinsics, width, height, near, visible)
+        p, q = _project_clipped(
+            lines3d, pose, intrinsics, width, height, near, visible, chunk_of, chunk_centre, chunk_half
+        )
         a, b, c = _covering_pairs(
             segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, p, distance, angle_score
         )
@@ -1114,6 +1183,9 @@ def _round(
     height: float,
     near: float,
     visible: np.ndarray,
+    chunk_of: np.ndarray,
+    chunk_centre: np.ndarray,
+    chunk_half: np.ndarray,
     segments: np.ndarray,
     angles: np.ndarray,
     lengths: np.ndarray,
@@ -1126,7 +1198,9 @@ def _round(
 ) -> np.ndarray | None:  # pragma: no cover - numba
     """One round of ``_solve_compiled`` from a pose: the covering pairs at ``distance`` and ``angle_tol``,
     then the pose fitted to them (``_fit``). Returns the new world_from_cam, or None."""
-    projected, index = _project_clipped(lines3d, cam_from_world, intrinsics, width, height, near, visible)
+    projected, index = _project_clipped(
+        lines3d, cam_from_world, intrinsics, width, height, near, visible, chunk_of, chunk_centre, chunk_half
+    )
     i, j, cover = _covering_pairs(
         segments, angles, lengths, grid_ptr, grid_items, grid_w, grid_px, projected, distance, angle_tol
     )
@@ -1188,12 +1262,14 @@ def _pixels_moved(lines3d: np.ndarray, camera: Camera, cam_from_world: np.ndarra
 
 def _median(values: np.ndarray, empty: float) -> float:
     """Returns ``np.median`` of (n,) finite values to the last bit (the middle one, or the mean of the
-    middle two), ``empty`` for none: without np.median's checks, which cost more than the sort of a map's
-    few hundred depths (it runs once per local solve)."""
+    middle two), ``empty`` for none: without np.median's checks, which cost more than the partition of a
+    map's few hundred depths (it runs once per local solve)."""
     if len(values) == 0:
         return empty
-    ordered = np.sort(values)
-    half = len(ordered) // 2
+    half = len(values) // 2
+    # the one or two middle values in their sorted places, without sorting the rest (a large map's
+    # hundreds of thousands of depths)
+    ordered = np.partition(values, [half - 1, half] if half > 0 else [0])
     if len(ordered) % 2:
         return float(ordered[half])
     return float((ordered[half - 1] + ordered[half]) / 2)

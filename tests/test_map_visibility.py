@@ -3,10 +3,10 @@ brute-force ray test on a synthetic scene (a box in front of a wall)."""
 
 import numpy as np
 import pytest
+from conftest import look_at
 
 from linereg.camera import Camera
 from linereg.errors import InvalidInputError
-from linereg.geometry import make_cam_from_world
 from linereg.map.linemap import LineMap
 from linereg.map.surfaces import make_surfaces, raster_mesh, raster_rectangles
 
@@ -74,16 +74,6 @@ def hits_before(origin, points, faces, tol):
         inside = (a >= 0) & (a <= 1) & (b >= 0) & (b <= 1) & (t > 0)
         hidden |= inside & (t * dist < dist - tol)
     return hidden
-
-
-def look_at(centre, target):
-    z = target - centre
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0, 0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R = np.stack([x, y, z])
-    return make_cam_from_world(R, -R @ centre)
 
 
 @pytest.fixture(scope="module")
@@ -342,32 +332,3 @@ def test_the_pyramid_test_leaves_out_only_segments_the_exact_clipping_leaves_out
         _, _, ok = _clip_image(a, b, t0, t1, ok, CAMERA)
         assert not (ok & ~kept).any()
         assert (~kept).sum() > 0.3 * len(a)  # it does cut: most random segments miss the view
-
-
-def test_the_chunk_cut_keeps_every_segment_the_pyramid_test_keeps(rng):
-    """``visibility._Chunks`` (the frustum's first cut, chunk by chunk) never drops a segment that
-    ``_in_pyramid`` keeps, over random poses of a map spread wide (a city) and thin (a wall), and it drops
-    most chunks of the wide one; ``index`` keeps its order."""
-    from linereg.map.visibility import _Chunks, _in_pyramid
-
-    near = 0.05
-    for extent in ((400.0, 400.0, 30.0), (20.0, 0.01, 5.0)):
-        starts = rng.uniform(0.0, 1.0, (20000, 3)) * extent
-        segments = np.c_[starts, starts + rng.normal(0.0, 2.0, (20000, 3))]
-        chunks = _Chunks(segments)
-        index = rng.permutation(len(segments))[:15000]
-        cut = []
-        for _ in range(20):
-            centre = rng.uniform(0.0, 1.0, 3) * extent
-            cam = look_at(centre, centre + rng.normal(size=3))
-            a = segments[:, :3] @ cam[:3, :3].T + cam[:3, 3]
-            b = segments[:, 3:] @ cam[:3, :3].T + cam[:3, 3]
-            kept = np.flatnonzero(_in_pyramid(a, b, CAMERA, near))
-            rows = chunks.rows_in_view(CAMERA, cam, near, None)
-            assert np.isin(kept, rows).all()
-            sub = chunks.rows_in_view(CAMERA, cam, near, index)
-            np.testing.assert_array_equal(sub, index[np.isin(index, rows)])
-            cut.append(1.0 - len(rows) / len(segments))
-        if extent[1] > 1.0:
-            assert np.median(cut) > 0.5  # a view of the wide map reaches few of its chunks
-    assert len(_Chunks(np.zeros((0, 6))).rows_in_view(CAMERA, np.eye(4), near, None)) == 0

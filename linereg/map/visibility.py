@@ -5,7 +5,7 @@ image and each sample ray-cast from the camera centre against the surface mesh (
 ``RaycastingScene``); runs of visible samples are the visible sub-segments. A segment lying ON a surface
 (a plane's boundary, a crease) meets it at its own range, so a sample is hidden only by a surface nearer
 than its range by a tolerance that grows with range. Before any of it, chunks of nearby segments whose box
-lies wholly outside the view's pyramid are left out (``_Chunks``): on a large map most of them.
+lies wholly outside the view's pyramid are left out (``chunks.Chunks``): on a large map most of them.
 
 ``potentially_visible``: the segments visible from SOME point of an axis-aligned box, conservatively. A
 piece of a segment is hidden from the whole box by one convex occluder (a surface rectangle) exactly when
@@ -23,6 +23,7 @@ import numba
 import numpy as np
 
 from ..camera import Camera
+from ..chunks import Chunks, inward_normals
 from ..config import VisibilityConfig
 from ..geometry import camera_center
 from .surfaces import Surfaces
@@ -44,7 +45,7 @@ class Visibility:
         self._occluders: tuple[np.ndarray, np.ndarray] | None = None
         self._pieces: tuple[np.ndarray, np.ndarray] | None = None
         self._pvs: dict[tuple[int, ...], np.ndarray] = {}
-        self._chunks: _Chunks | None = None
+        self._chunks: Chunks | None = None
         # the unions of the cells of a box, newest last: a tracker asks for the same few boxes each frame
         self._unions: dict[tuple[int, ...], np.ndarray] = {}
 
@@ -85,9 +86,9 @@ class Visibility:
         seen = self._unoccluded(points, camera_center(cam_from_world))
         return _runs(self.segments[rows], rows, owner, tt, seen, count)
 
-    def _chunk_set(self) -> _Chunks:
+    def _chunk_set(self) -> Chunks:
         if self._chunks is None:
-            self._chunks = _Chunks(self.segments)
+            self._chunks = Chunks.build(self.segments)
         return self._chunks
 
     def footprint(self, camera: Camera, cam_from_world: np.ndarray, cell_px: float) -> np.ndarray | None:
@@ -225,69 +226,6 @@ class Visibility:
         return self._pieces
 
 
-# ---------------------------------------------------------------------------------------------- chunks
-
-
-CHUNK_SEGMENTS = 64  # segments per chunk of the frustum's first cut, on average
-
-
-class _Chunks:
-    """The map's segments grouped by the cell of their midpoints (cells sized for ``CHUNK_SEGMENTS`` a cell
-    on average), each group with the box of its segments' ends: a group whose box lies wholly outside a face
-    of a view's pyramid holds no segment ``_in_pyramid`` would keep. ``chunk_of``: (M,) each segment's
-    group; ``centre``, ``half``: (C, 3) each group's box."""
-
-    def __init__(self, segments: np.ndarray):
-        ends = segments.reshape(-1, 2, 3)
-        if len(segments) == 0:
-            self.chunk_of = np.zeros(0, np.int64)
-            self.centre, self.half = np.zeros((0, 3)), np.zeros((0, 3))
-            return
-        mid = ends.mean(axis=1)
-        cell = _cell_size(np.ptp(mid, axis=0), max(len(segments) // CHUNK_SEGMENTS, 1))
-        key = np.floor((mid - mid.min(axis=0)) / cell).astype(np.int64)
-        dims = key.max(axis=0) + 1
-        # (M,) each segment's chunk: its cell's rank among the occupied cells
-        _, self.chunk_of = np.unique(
-            (key[:, 0] * dims[1] + key[:, 1]) * dims[2] + key[:, 2], return_inverse=True
-        )
-        chunks = int(self.chunk_of.max()) + 1
-        low, high = np.full((chunks, 3), np.inf), np.full((chunks, 3), -np.inf)
-        np.minimum.at(low, self.chunk_of, ends.min(axis=1))
-        np.maximum.at(high, self.chunk_of, ends.max(axis=1))
-        self.centre, self.half = 0.5 * (low + high), 0.5 * (high - low)
-
-    def rows_in_view(
-        self, camera: Camera, cam_from_world: np.ndarray, near: float, index: np.ndarray | None
-    ) -> np.ndarray:
-        """Returns the (k,) int64 rows of ``index`` (None: all, in order) whose chunk's box is not wholly
-        outside a face of the pyramid ``_in_pyramid`` tests nor wholly nearer than ``near``."""
-        R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
-        normals = np.c_[_inward_normals(camera), [0.0, 0.0, 1.0]]  # (3, 5) camera frame; the last: depth
-        w = R.T @ normals  # (3, 5): the same in world coordinates, n . (R X + t) = (R^T n) . X + n . t
-        offset = normals.T @ t - np.r_[0.0, 0.0, 0.0, 0.0, near]
-        # the largest value of each face's function over a box (its centre's, plus the half-sizes along
-        # |w|); a face the whole box lies outside of by more than rounding rules the box out
-        reach = self.centre @ w + self.half @ np.abs(w) + offset
-        scale = 1e-9 * (1.0 + np.abs(self.centre @ w).max(axis=1, initial=0.0) + np.abs(offset).max())
-        kept = (reach >= -scale[:, None]).all(axis=1)
-        if index is None:
-            return np.flatnonzero(kept[self.chunk_of])
-        index = np.asarray(index, dtype=np.int64)
-        return index[kept[self.chunk_of[index]]]
-
-
-def _cell_size(extent: np.ndarray, cells: int) -> float:
-    """Returns the edge of cubic cells that cut a box of (3,) ``extent`` into about ``cells`` cells, an axis
-    thinner than a cell counting as one cell thick."""
-    extent = np.sort(np.maximum(extent, 1e-9))[::-1]
-    for used in (3, 2, 1):
-        size = float((np.prod(extent[:used]) / cells) ** (1.0 / used))
-        if used == 1 or extent[used - 1] >= size:
-            return max(size, 1e-9)
-    return 1.0  # not reached
-
-
 # ---------------------------------------------------------------------------------------------- helpers
 
 
@@ -301,22 +239,9 @@ def _in_pyramid(a: np.ndarray, b: np.ndarray, camera: Camera, near: float) -> np
     nearer than ``near`` or both outside one side face of the pyramid through the camera centre and the
     image border widened by a pixel (the exact clipping's border lies half a pixel out): the outside of a
     face is convex, so the whole segment lies there and no part of it can project into the image."""
-    inward = _inward_normals(camera)
+    inward = inward_normals(camera)
     outside = ((a @ inward) < 0.0) & ((b @ inward) < 0.0)
     return ~(outside.any(axis=1) | ((a[:, 2] < near) & (b[:, 2] < near)))
-
-
-def _inward_normals(camera: Camera) -> np.ndarray:
-    """Returns (3, 4) the camera-frame inward normals of the side faces of the pyramid through the camera
-    centre and the image border widened by a pixel (``_in_pyramid``)."""
-    return np.array(
-        [
-            [1.0, 0.0, (camera.cx + 1.5) / camera.fx],  # u >= -1.5
-            [-1.0, 0.0, (camera.width + 0.5 - camera.cx) / camera.fx],  # u <= width + 0.5
-            [0.0, 1.0, (camera.cy + 1.5) / camera.fy],  # v >= -1.5
-            [0.0, -1.0, (camera.height + 0.5 - camera.cy) / camera.fy],  # v <= height + 0.5
-        ]
-    ).T
 
 
 def _clip_near(za: np.ndarray, zb: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
