@@ -22,7 +22,7 @@ from .registration import Registration, check_segments
 from .search import map_signatures
 from .timing import StageTimer
 
-__all__ = ["Prior", "localize", "localize_segments", "map_view"]
+__all__ = ["Prior", "localize", "localize_segments", "map_view", "prepare_map"]
 
 
 def localize(
@@ -91,6 +91,15 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
         footprint=line_map.surface_footprint if _has_surfaces(line_map) else None,
         chunks=None if whole is None else whole.subset(index),
     )
+
+
+def prepare_map(line_map: LineMap, config: RegisterConfig | None = None) -> None:
+    """Derives what every query of a map needs once, so that no query waits for it: the whole map's view
+    (corner points, signatures, chunks: ``map_view``) and its occlusion test's ray-casting scene and chunks
+    (``Visibility.prepare``)."""
+    map_view(line_map, None, config or RegisterConfig())
+    if _has_surfaces(line_map):
+        line_map.visibility().prepare()
 
 
 def _has_surfaces(line_map: LineMap) -> bool:

@@ -41,8 +41,9 @@ def load_engine(spec: str, args: tuple) -> Engine:
 
 def load_map_engine(map_path: str, map_name: str | None = None, config_path: str | None = None) -> Engine:
     """Returns the Engine of the real library over the LineMap file ``map_path`` (config: the defaults, or
-    the JSON overrides at ``config_path``), its compiled kernels ready (``linereg.warm_up``: the worker
-    announces itself after it, so that no query waits for numba to compile them on a fresh install)."""
+    the JSON overrides at ``config_path``), its compiled kernels and what every query of the map needs
+    ready (``linereg.warm_up``: the worker announces itself after it, so that no query waits for numba to
+    compile them on a fresh install, nor for the map's corner points and occlusion scene)."""
     import linereg
 
     line_map = linereg.LineMap.load(map_path)
@@ -51,7 +52,7 @@ def load_map_engine(map_path: str, map_name: str | None = None, config_path: str
     engine = _engine(line_map, name, info)
     engine.config = _config(config_path)
     try:
-        engine.warm_up_s = linereg.warm_up()
+        engine.warm_up_s = linereg.warm_up(line_map, engine.config)
     except Exception as e:  # an optimisation: the first query compiles what it did not
         log.warning("warm-up failed", extra={"fields": {"error": f"{type(e).__name__}: {e}"}})
     return engine

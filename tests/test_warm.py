@@ -71,7 +71,7 @@ def test_a_failing_warm_up_does_not_stop_a_service_worker_loading_its_map(tmp_pa
     import linereg.warm
     from service.engine import load_map_engine
 
-    def broken() -> float:
+    def broken(*_: object) -> float:
         raise RuntimeError("no compiler")
 
     rng = np.random.default_rng(5)
@@ -82,3 +82,19 @@ def test_a_failing_warm_up_does_not_stop_a_service_worker_loading_its_map(tmp_pa
         engine = load_map_engine(str(path))
     assert engine.map_name == "small" and len(engine.line_map.segments) == 40
     assert [r.getMessage() for r in caplog.records] == ["warm-up failed"]
+
+
+def test_a_service_worker_prepares_its_map_before_the_first_query(tmp_path):
+    """``load_map_engine`` warms up with its map: the map's view (corner points, signatures) and its
+    occlusion test's ray-casting scene and chunks are built before a query arrives."""
+    from service.engine import load_map_engine
+
+    rng = np.random.default_rng(3)
+    building = make_building(rng)
+    path = tmp_path / "block.linemap"
+    linereg.LineMap.from_segments(building.edges, name="block", surfaces=building.mesh()).save(path)
+    engine = load_map_engine(str(path))
+    line_map = engine.line_map
+    assert "view" in line_map.cache
+    visibility = line_map.visibility()
+    assert visibility._scene is not None and visibility._chunks is not None

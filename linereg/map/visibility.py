@@ -86,6 +86,12 @@ class Visibility:
         seen = self._unoccluded(points, camera_center(cam_from_world))
         return _runs(self.segments[rows], rows, owner, tt, seen, count)
 
+    def prepare(self) -> None:
+        """Builds what every ``visible_parts`` call needs (the chunks, the ray-casting scene) now."""
+        self._chunk_set()
+        if self.surfaces is not None:
+            self._raycasting_scene()
+
     def _chunk_set(self) -> Chunks:
         if self._chunks is None:
             self._chunks = Chunks.build(self.segments)
