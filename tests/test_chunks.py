@@ -4,10 +4,10 @@ of map points no camera centre of a box can see inside the image."""
 
 import numpy as np
 from conftest import look_at
+from plain_visibility import in_pyramid
 
 from linereg.camera import Camera
 from linereg.chunks import Chunks, kept_chunks
-from linereg.map.visibility import _in_pyramid
 from linereg.score import project_clipped
 from linereg.search import in_swept_view
 
@@ -22,7 +22,7 @@ def maps(rng):
 
 
 def test_the_chunk_cut_keeps_every_segment_the_pyramid_test_keeps(rng):
-    """``Chunks.rows_in_view`` never drops a segment that ``visibility._in_pyramid`` keeps, over random
+    """``Chunks.rows_in_view`` never drops a segment that the pyramid test of ``visible_parts``' sampling keeps, over random
     poses of a map spread wide (a city) and thin (a wall), and it drops most chunks of the wide one;
     ``index`` keeps its order."""
     near = 0.05
@@ -35,7 +35,7 @@ def test_the_chunk_cut_keeps_every_segment_the_pyramid_test_keeps(rng):
             cam = look_at(centre, centre + rng.normal(size=3))
             a = segments[:, :3] @ cam[:3, :3].T + cam[:3, 3]
             b = segments[:, 3:] @ cam[:3, :3].T + cam[:3, 3]
-            kept = np.flatnonzero(_in_pyramid(a, b, CAMERA, near))
+            kept = np.flatnonzero(in_pyramid(a, b, CAMERA, near))
             rows = chunks.rows_in_view(CAMERA, cam, near, None)
             assert np.isin(kept, rows).all()
             sub = chunks.rows_in_view(CAMERA, cam, near, index)

@@ -4,6 +4,7 @@ brute-force ray test on a synthetic scene (a box in front of a wall)."""
 import numpy as np
 import pytest
 from conftest import look_at
+from plain_visibility import clip_image, clip_near, in_pyramid, samples
 
 from linereg.camera import Camera
 from linereg.errors import InvalidInputError
@@ -319,16 +320,36 @@ def test_the_surface_footprint_is_where_a_cells_ray_meets_a_surface(line_map):
 
 
 def test_the_pyramid_test_leaves_out_only_segments_the_exact_clipping_leaves_out(rng):
-    """``visibility._in_pyramid`` (the cheap first cut of ``visible_parts``) drops a segment only where
-    the exact clipping to the near plane and the image finds no part of it in view, for random segments
-    all round the camera (in front, behind, across the near plane), near and far."""
-    from linereg.map.visibility import _clip_image, _clip_near, _in_pyramid
-
+    """The pyramid test (the cheap first cut of ``visible_parts``' sampling) drops a segment only where the
+    exact clipping to the near plane and the image finds no part of it in view, for random segments all
+    round the camera (in front, behind, across the near plane), near and far."""
     near = 0.05
     for scale in (0.5, 5.0, 50.0):
         a, b = rng.normal(0.0, scale, (20000, 3)), rng.normal(0.0, scale, (20000, 3))
-        kept = _in_pyramid(a, b, CAMERA, near)
-        t0, t1, ok = _clip_near(a[:, 2], b[:, 2], near)
-        _, _, ok = _clip_image(a, b, t0, t1, ok, CAMERA)
+        kept = in_pyramid(a, b, CAMERA, near)
+        t0, t1, ok = clip_near(a[:, 2], b[:, 2], near)
+        _, _, ok = clip_image(a, b, t0, t1, ok, CAMERA)
         assert not (ok & ~kept).any()
         assert (~kept).sum() > 0.3 * len(a)  # it does cut: most random segments miss the view
+
+
+def test_the_compiled_sampling_is_the_plain_rule_to_the_bit(rng):
+    """``visibility._samples`` (the pyramid cut, the clipping, the samples of ``visible_parts`` in one
+    compiled pass) returns what the plain numpy rule returns, array for array and bit for bit, for random
+    segments all round the camera, across the near plane and the image border, short and long."""
+    from linereg.map.visibility import _samples
+
+    near = 0.05
+    for scale in (0.5, 5.0, 50.0):
+        world = rng.normal(0.0, scale, (5000, 6))
+        cam = look_at(rng.normal(0.0, scale, 3), rng.normal(0.0, scale, 3))
+        rows = np.sort(rng.choice(len(world), 4000, replace=False))
+        R, t = cam[:3, :3], cam[:3, 3]
+        a, b = world[rows, :3] @ R.T + t, world[rows, 3:] @ R.T + t
+        got = _samples(
+            world, rows, a, b, near, CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy, 640.0, 480.0, 3.0, 4000
+        )
+        want = samples(world, rows, a, b, CAMERA, near, 3.0, 4000)
+        assert len(want[0]) > 100  # some segments are in view
+        for g, w in zip(got, want, strict=True):
+            np.testing.assert_array_equal(g, w)

@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from ..camera import Camera
-from ..chunks import Chunks, inward_normals
+from ..chunks import Chunks
 from ..config import VisibilityConfig
 from ..geometry import camera_center
 from .surfaces import Surfaces
@@ -64,25 +64,14 @@ class Visibility:
         R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
         seg = self.segments[rows]
         a, b = seg[:, :3] @ R.T + t, seg[:, 3:] @ R.T + t
-        # a segment wholly outside one face of the view's pyramid (widened by a pixel) is left out before
-        # the exact clipping below, which would leave it out too: on a large map most of them are
-        near = _in_pyramid(a, b, camera, cfg.min_depth_m)
-        rows, a, b = rows[near], a[near], b[near]
-        t0, t1, ok = _clip_near(a[:, 2], b[:, 2], cfg.min_depth_m)
-        t0, t1, ok = _clip_image(a, b, t0, t1, ok, camera)
-        rows, a, b, t0, t1 = rows[ok], a[ok], b[ok], t0[ok], t1[ok]
-        # samples uniform in the image: a segment's 2D parameter s maps to t = s z_a / (z_b (1-s) + s z_a)
-        p0, p1 = _pixel(camera, a + t0[:, None] * (b - a)), _pixel(camera, a + t1[:, None] * (b - a))
-        count = np.clip(np.ceil(np.linalg.norm(p1 - p0, axis=1) / cfg.sample_px), 1, cfg.max_samples)
-        count = count.astype(np.int64) + 1
-        owner = np.repeat(np.arange(len(rows)), count)
-        first = np.cumsum(count) - count
-        s = (np.arange(len(owner)) - first[owner]) / (count[owner] - 1)
-        za, zb = (a + t0[:, None] * (b - a))[:, 2], (a + t1[:, None] * (b - a))[:, 2]
-        u = s * za[owner] / (zb[owner] * (1.0 - s) + s * za[owner])
-        tt = t0[owner] + u * (t1 - t0)[owner]
-        world = self.segments[rows][owner]
-        points = world[:, :3] + tt[:, None] * (world[:, 3:] - world[:, :3])
+        # in one compiled pass (``_samples``): a segment wholly outside one face of the view's pyramid
+        # (widened by a pixel) is left out before the exact clipping to the near plane and the image, which
+        # would leave it out too; the rest are sampled every ``sample_px`` of their image
+        kept, count, owner, tt, points = _samples(
+            np.ascontiguousarray(self.segments), rows, a, b, cfg.min_depth_m, camera.fx, camera.fy, camera.cx,
+            camera.cy, float(camera.width), float(camera.height), cfg.sample_px, cfg.max_samples,
+        )  # fmt: skip
+        rows = rows[kept]
         seen = self._unoccluded(points, camera_center(cam_from_world))
         return _runs(self.segments[rows], rows, owner, tt, seen, count)
 
@@ -235,61 +224,139 @@ class Visibility:
 # ---------------------------------------------------------------------------------------------- helpers
 
 
-def _pixel(camera: Camera, x: np.ndarray) -> np.ndarray:
-    """Returns (N, 2) pixels of (N, 3) camera-frame points in front of the camera."""
-    return np.c_[camera.fx * x[:, 0] / x[:, 2] + camera.cx, camera.fy * x[:, 1] / x[:, 2] + camera.cy]
-
-
-def _in_pyramid(a: np.ndarray, b: np.ndarray, camera: Camera, near: float) -> np.ndarray:
-    """Returns (N,) bool: False where both camera-frame ends of a segment, (N, 3) ``a`` and ``b``, lie
-    nearer than ``near`` or both outside one side face of the pyramid through the camera centre and the
-    image border widened by a pixel (the exact clipping's border lies half a pixel out): the outside of a
-    face is convex, so the whole segment lies there and no part of it can project into the image."""
-    inward = inward_normals(camera)
-    outside = ((a @ inward) < 0.0) & ((b @ inward) < 0.0)
-    return ~(outside.any(axis=1) | ((a[:, 2] < near) & (b[:, 2] < near)))
-
-
-def _clip_near(za: np.ndarray, zb: np.ndarray, near: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (t0, t1, ok) (N,) each: the parameter range of a + t (b - a) with depth >= near."""
-    t0, t1 = np.zeros(len(za)), np.ones(len(za))
-    dz = zb - za
-    with np.errstate(divide="ignore", invalid="ignore"):
-        cross = (near - za) / dz
-    t0 = np.where((za < near) & (zb >= near), cross, t0)
-    t1 = np.where((zb < near) & (za >= near), cross, t1)
-    return t0, t1, ~((za < near) & (zb < near))
-
-
-def _clip_image(
-    a: np.ndarray, b: np.ndarray, t0: np.ndarray, t1: np.ndarray, ok: np.ndarray, camera: Camera
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns (t0, t1, ok) narrowed to the stretch whose projection lies inside the image (Liang-Barsky
-    on the 2D segment, its parameters mapped back to 3D: t = s z_a / (z_b (1 - s) + s z_a))."""
-    pa, pb = a + t0[:, None] * (b - a), a + t1[:, None] * (b - a)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        p0, p1 = _pixel(camera, pa), _pixel(camera, pb)
-        d = p1 - p0
-        s0, s1 = np.zeros(len(a)), np.ones(len(a))
-        bounds = (
-            (0, -0.5, 1.0),
-            (0, camera.width - 0.5, -1.0),
-            (1, -0.5, 1.0),
-            (1, camera.height - 0.5, -1.0),
-        )
-        for axis, edge, inward in bounds:
-            q = inward * (p0[:, axis] - edge)  # >= 0: inside this edge at s = 0
-            r = inward * d[:, axis]
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _samples(
+    segments: np.ndarray,
+    rows: np.ndarray,
+    a: np.ndarray,
+    b: np.ndarray,
+    near: float,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    width: float,
+    height: float,
+    sample_px: float,
+    max_samples: int,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns (kept (n,) positions in ``rows`` of the segments some part of which projects into the image,
+    (n,) samples of each, (S,) owner (position in kept) of each sample, (S,) its parameter along its world
+    segment, (S, 3) its world point) of the map ``segments`` ``rows`` whose camera-frame ends are ``a``,
+    ``b`` (K, 3): segments both of whose ends lie outside one side face of the view's pyramid (widened by a
+    pixel) or nearer than ``near`` are left out, the rest clipped to the near plane and to the image
+    (Liang-Barsky on the 2D segment, its parameters mapped back to 3D) and sampled uniformly in the image,
+    every ``sample_px`` (at most ``max_samples`` + 1 per segment; a 2D parameter s maps to t = s z_a / (z_b
+    (1 - s) + s z_a)). The rules written plainly with numpy, which this reproduces to the bit:
+    ``tests/plain_visibility.py``."""
+    n_in = len(rows)
+    inward = np.array(
+        [
+            [1.0, 0.0, (cx + 1.5) / fx],
+            [-1.0, 0.0, (width + 0.5 - cx) / fx],
+            [0.0, 1.0, (cy + 1.5) / fy],
+            [0.0, -1.0, (height + 0.5 - cy) / fy],
+        ]
+    )
+    kept = np.empty(n_in, np.int64)
+    lo_t, hi_t, count = np.empty(n_in), np.empty(n_in), np.empty(n_in, np.int64)
+    n = 0
+    total = 0
+    for k in range(n_in):
+        ax, ay, az, bx, by, bz = a[k, 0], a[k, 1], a[k, 2], b[k, 0], b[k, 1], b[k, 2]
+        if az < near and bz < near:  # wholly nearer than the near plane
+            continue
+        outside = False
+        for f in range(4):
+            da = ax * inward[f, 0] + ay * inward[f, 1] + az * inward[f, 2]
+            db = bx * inward[f, 0] + by * inward[f, 1] + bz * inward[f, 2]
+            if da < 0.0 and db < 0.0:
+                outside = True
+                break
+        if outside:
+            continue
+        # the near plane
+        t0, t1 = 0.0, 1.0
+        cross = (near - az) / (bz - az)
+        if az < near and bz >= near:
+            t0 = cross
+        if bz < near and az >= near:
+            t1 = cross
+        # the image: Liang-Barsky on the 2D segment, its parameters mapped back to 3D
+        dx, dy, dz = bx - ax, by - ay, bz - az
+        pax, pay, paz = ax + t0 * dx, ay + t0 * dy, az + t0 * dz
+        pbx, pby, pbz = ax + t1 * dx, ay + t1 * dy, az + t1 * dz
+        p0x, p0y = fx * pax / paz + cx, fy * pay / paz + cy
+        p1x, p1y = fx * pbx / pbz + cx, fy * pby / pbz + cy
+        ddx, ddy = p1x - p0x, p1y - p0y
+        s0, s1 = 0.0, 1.0
+        ok = True
+        for e in range(4):
+            if e == 0:
+                q, r = 1.0 * (p0x - -0.5), 1.0 * ddx
+            elif e == 1:
+                q, r = -1.0 * (p0x - (width - 0.5)), -1.0 * ddx
+            elif e == 2:
+                q, r = 1.0 * (p0y - -0.5), 1.0 * ddy
+            else:
+                q, r = -1.0 * (p0y - (height - 0.5)), -1.0 * ddy
             cut = -q / r
-            s0 = np.where(r > 0, np.maximum(s0, cut), s0)
-            s1 = np.where(r < 0, np.minimum(s1, cut), s1)
-            ok = ok & ~((r == 0) & (q < 0))
-        ok = ok & (s1 > s0) & np.isfinite(s0) & np.isfinite(s1)
-        za, zb = pa[:, 2], pb[:, 2]
+            if r > 0:
+                s0 = _nan_max(s0, cut)
+            if r < 0:
+                s1 = _nan_min(s1, cut)
+            if r == 0 and q < 0:
+                ok = False
+        if not (ok and s1 > s0 and np.isfinite(s0) and np.isfinite(s1)):
+            continue
+        za, zb = paz, pbz
         u0 = s0 * za / (zb * (1 - s0) + s0 * za)
         u1 = s1 * za / (zb * (1 - s1) + s1 * za)
-    span = t1 - t0
-    return np.where(ok, t0 + u0 * span, 0.0), np.where(ok, t0 + u1 * span, 0.0), ok
+        span = t1 - t0
+        t0, t1 = t0 + u0 * span, t0 + u1 * span
+        # the samples' count: every sample_px of the clipped segment's image
+        qax, qay, qaz = ax + t0 * dx, ay + t0 * dy, az + t0 * dz
+        qbx, qby, qbz = ax + t1 * dx, ay + t1 * dy, az + t1 * dz
+        ux, uy = fx * qax / qaz + cx, fy * qay / qaz + cy
+        vx, vy = fx * qbx / qbz + cx, fy * qby / qbz + cy
+        ex, ey = vx - ux, vy - uy
+        c = min(max(np.ceil(np.sqrt(ex * ex + ey * ey) / sample_px), 1.0), float(max_samples))
+        kept[n], lo_t[n], hi_t[n], count[n] = k, t0, t1, int(c) + 1
+        n += 1
+        total += int(c) + 1
+    owner, tt, points = np.empty(total, np.int64), np.empty(total), np.empty((total, 3))
+    j = 0
+    for i in range(n):
+        k = kept[i]
+        ax, ay, az, bx, by, bz = a[k, 0], a[k, 1], a[k, 2], b[k, 0], b[k, 1], b[k, 2]
+        t0, t1 = lo_t[i], hi_t[i]
+        za, zb = az + t0 * (bz - az), az + t1 * (bz - az)
+        world = segments[rows[k]]
+        for m in range(count[i]):
+            s = m / (count[i] - 1)
+            u = s * za / (zb * (1.0 - s) + s * za)
+            t = t0 + u * (t1 - t0)
+            owner[j], tt[j] = i, t
+            for d in range(3):
+                points[j, d] = world[d] + t * (world[3 + d] - world[d])
+            j += 1
+    return kept[:n].copy(), count[:n].copy(), owner, tt, points
+
+
+@numba.njit(cache=True, nogil=True)
+def _nan_max(x: float, y: float) -> float:  # pragma: no cover - numba
+    """np.maximum of two floats: NaN if either is."""
+    if x != x or y != y:
+        return np.nan
+    return x if x >= y else y
+
+
+@numba.njit(cache=True, nogil=True)
+def _nan_min(x: float, y: float) -> float:  # pragma: no cover - numba
+    """np.minimum of two floats: NaN if either is."""
+    if x != x or y != y:
+        return np.nan
+    return x if x <= y else y
 
 
 def _runs(
