@@ -64,16 +64,11 @@ class Chunks:
     ) -> np.ndarray:
         """Returns the (k,) int64 rows of ``index`` (None: all, in order) whose chunk's box is not wholly
         outside a face of the view's pyramid nor wholly nearer than ``near``."""
-        T = np.asarray(cam_from_world, dtype=np.float64)
-        R, t = T[:3, :3], T[:3, 3]
-        normals = np.c_[inward_normals(camera), [0.0, 0.0, 1.0]]  # (3, 5) camera frame; the last: depth
-        w = R.T @ normals  # (3, 5): the same in world coordinates, n . (R X + t) = (R^T n) . X + n . t
-        offset = normals.T @ t - np.r_[0.0, 0.0, 0.0, 0.0, near]
-        # the largest value of each face's function over a box (its centre's, plus the half-sizes along
-        # |w|); a face the whole box lies outside of by more than rounding rules the box out
-        reach = self.centre @ w + self.half @ np.abs(w) + offset
-        scale = 1e-9 * (1.0 + np.abs(self.centre @ w).max(axis=1, initial=0.0) + np.abs(offset).max())
-        kept = (reach >= -scale[:, None]).all(axis=1)
+        T = np.ascontiguousarray(cam_from_world, dtype=np.float64)
+        intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
+        kept = kept_chunks(
+            self.centre, self.half, T, intrinsics, float(camera.width), float(camera.height), near
+        )
         if index is None:
             return np.flatnonzero(kept[self.of])
         index = np.asarray(index, dtype=np.int64)
@@ -108,7 +103,9 @@ def kept_chunks(
 ) -> np.ndarray:  # pragma: no cover - numba
     """Returns (C,) bool: the chunks (boxes ``centre`` +- ``half``) not wholly outside a face of the
     pyramid of (4, 4) ``T`` (cam_from_world), ``intrinsics`` (fx, fy, cx, cy) and the image ``width`` x
-    ``height`` widened by a pixel, nor wholly nearer than ``near``: ``Chunks.rows_in_view`` per chunk."""
+    ``height`` widened by a pixel (``inward_normals``), nor wholly nearer than ``near``: for each face, the
+    largest value of its function over a box (its centre's, plus the half-sizes along |w|, w = R^T n); a
+    face the whole box lies outside of by more than rounding rules the box out."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
     normals = np.array(
         [

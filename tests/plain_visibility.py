@@ -89,3 +89,17 @@ def samples(
     world = segments[rows[kept]][owner]
     points = world[:, :3] + tt[:, None] * (world[:, 3:] - world[:, :3])
     return kept, count, owner, tt, points
+
+
+def chunks_in_view(
+    centre: np.ndarray, half: np.ndarray, camera: Camera, cam_from_world: np.ndarray, near: float
+):
+    """``chunks.kept_chunks`` by numpy's rules: (C,) bool, the boxes not wholly outside a face of the view's
+    pyramid (widened by a pixel) nor wholly nearer than ``near``."""
+    R, t = cam_from_world[:3, :3], cam_from_world[:3, 3]
+    normals = np.c_[inward_normals(camera), [0.0, 0.0, 1.0]]  # (3, 5) camera frame; the last: depth
+    w = R.T @ normals
+    offset = normals.T @ t - np.r_[0.0, 0.0, 0.0, 0.0, near]
+    reach = centre @ w + half @ np.abs(w) + offset
+    scale = 1e-9 * (1.0 + np.abs(centre @ w).max(axis=1, initial=0.0) + np.abs(offset).max())
+    return (reach >= -scale[:, None]).all(axis=1)

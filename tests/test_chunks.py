@@ -4,7 +4,7 @@ of map points no camera centre of a box can see inside the image."""
 
 import numpy as np
 from conftest import look_at
-from plain_visibility import in_pyramid
+from plain_visibility import chunks_in_view, in_pyramid
 
 from linereg.camera import Camera
 from linereg.chunks import Chunks, kept_chunks
@@ -51,7 +51,8 @@ def test_the_chunk_cut_keeps_every_segment_the_pyramid_test_keeps(rng):
 
 def test_the_projection_with_chunks_is_the_projection_without(rng):
     """``project_clipped`` with the segments' chunks returns the same arrays as without, and the compiled
-    per-chunk test keeps exactly the chunks ``rows_in_view`` keeps (up to rounding at a face: none here)."""
+    per-chunk test keeps exactly the chunks the plain numpy rule keeps (up to rounding at a face: none
+    here)."""
     near = 0.05
     intrinsics = np.array([CAMERA.fx, CAMERA.fy, CAMERA.cx, CAMERA.cy])
     for extent, segments in maps(rng):
@@ -65,6 +66,7 @@ def test_the_projection_with_chunks_is_the_projection_without(rng):
             np.testing.assert_array_equal(plain[0], cut[0])
             np.testing.assert_array_equal(plain[1], cut[1])
             kept = kept_chunks(chunks.centre, chunks.half, cam, intrinsics, 640.0, 480.0, near)
+            np.testing.assert_array_equal(kept, chunks_in_view(chunks.centre, chunks.half, CAMERA, cam, near))
             np.testing.assert_array_equal(
                 np.flatnonzero(kept[chunks.of]), chunks.rows_in_view(CAMERA, cam, near, None)
             )

@@ -114,14 +114,11 @@ class Visibility:
 
         o3d = open3d()
         scene = self._raycasting_scene()
-        origin = self.surfaces.origin
-        rays = np.empty((len(points), 6), dtype=np.float32)
-        rays[:, :3] = centre - origin
-        rays[:, 3:] = points - centre  # unnormalised: the point lies at t = 1
+        # rays from the centre (in the mesh's frame) to each point, unnormalised: the point lies at t = 1
+        rays, dist = _rays_to(points, np.asarray(centre, dtype=np.float64), self.surfaces.origin)
         hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
-        dist = np.linalg.norm(points - centre, axis=1)
-        tol = self.config.depth_tolerance_m + self.config.depth_tolerance_fraction * dist
-        return hit >= 1.0 - tol / np.maximum(dist, 1e-9)
+        cfg = self.config
+        return _not_behind(hit, dist, cfg.depth_tolerance_m, cfg.depth_tolerance_fraction)
 
     def _raycasting_scene(self) -> Any:
         if self._scene is None:
@@ -341,6 +338,39 @@ def _samples(
                 points[j, d] = world[d] + t * (world[3 + d] - world[d])
             j += 1
     return kept[:n].copy(), count[:n].copy(), owner, tt, points
+
+
+@numba.njit(cache=True, nogil=True)
+def _rays_to(
+    points: np.ndarray, centre: np.ndarray, origin: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """Returns ((S, 6) float32 rays: ``centre - origin``, then ``points - centre``; (S,) each point's
+    distance from the centre, as ``np.linalg.norm`` gives it)."""
+    rays = np.empty((len(points), 6), np.float32)
+    dist = np.empty(len(points))
+    for i in range(len(points)):
+        dx, dy, dz = points[i, 0] - centre[0], points[i, 1] - centre[1], points[i, 2] - centre[2]
+        rays[i, 0], rays[i, 1], rays[i, 2] = (
+            centre[0] - origin[0],
+            centre[1] - origin[1],
+            centre[2] - origin[2],
+        )
+        rays[i, 3], rays[i, 4], rays[i, 5] = dx, dy, dz
+        dist[i] = np.sqrt(dx * dx + dy * dy + dz * dz)
+    return rays, dist
+
+
+@numba.njit(cache=True, nogil=True)
+def _not_behind(
+    hit: np.ndarray, dist: np.ndarray, tolerance_m: float, tolerance_fraction: float
+) -> np.ndarray:  # pragma: no cover - numba
+    """Returns (S,) bool: no surface hit (at ``hit``, in units of the ray) nearer than each sample (at 1,
+    ``dist`` metres away) by more than ``tolerance_m`` + ``tolerance_fraction`` of its distance."""
+    out = np.empty(len(hit), np.bool_)
+    for i in range(len(hit)):
+        tol = tolerance_m + tolerance_fraction * dist[i]
+        out[i] = hit[i] >= 1.0 - tol / max(dist[i], 1e-9)
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
