@@ -506,7 +506,9 @@ def _pair_rays(
         image_pts.two_armed,
         image_pts.arm_lengths,
         map_pts.positions,
-        np.ascontiguousarray(np.nan_to_num(map_pts.arms) @ R.T),
+        # the arms of the points outside every cluster, turned (the only arms the kernel reads), as one
+        # (2L, 3) product: row for row what the (L, 2, 3) product gives, a fraction of its time
+        np.ascontiguousarray((np.nan_to_num(map_pts.arms[loose]).reshape(-1, 3) @ R.T).reshape(-1, 2, 3)),
         map_pts.two_armed,
         map_pts.arm_lengths,
         order,
@@ -659,7 +661,7 @@ def _pairs_kernel(
     q_two: np.ndarray,
     q_len: np.ndarray,
     X: np.ndarray,
-    x_arms: np.ndarray,
+    loose_arms: np.ndarray,
     x_two: np.ndarray,
     x_len: np.ndarray,
     order: np.ndarray,
@@ -670,7 +672,11 @@ def _pairs_kernel(
     K: np.ndarray,
     cos_tol: float,
     length_ratio: float,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover - numba
+    """``_pair_rays``' pairs: ((P,) image point k, (P,) map point m, (P,) farthest lambda) of every image
+    point (pixel ``q``, arms ``q_arms``) with the map points of its arms' signature keys (``order`` sorted by
+    ``keys``, ``MapSignatures``), then with the ``loose`` points, tested one by one on their turned arms
+    ``loose_arms`` ((L, 2, 3), row for row); ``dirs``: the cluster directions turned into the camera."""
     nc = 2 * len(dirs)
     count = 0
     cap = 1024
@@ -726,13 +732,13 @@ def _pairs_kernel(
             m = loose[p]
             if x_two[m] != q_two[k]:
                 continue
-            ax, ay = _direction_at(x_arms[m, 0], q[k, 0], q[k, 1], K)
+            ax, ay = _direction_at(loose_arms[p, 0], q[k, 0], q[k, 1], K)
             if arms == 1:
                 if ax * q_arms[k, 0, 0] + ay * q_arms[k, 0, 1] < cos_tol:
                     continue
                 far = x_len[m, 0] / max(q_len[k, 0], 1e-9)
             else:
-                bx, by = _direction_at(x_arms[m, 1], q[k, 0], q[k, 1], K)
+                bx, by = _direction_at(loose_arms[p, 1], q[k, 0], q[k, 1], K)
                 d00 = ax * q_arms[k, 0, 0] + ay * q_arms[k, 0, 1]
                 d11 = bx * q_arms[k, 1, 0] + by * q_arms[k, 1, 1]
                 d01 = ax * q_arms[k, 1, 0] + ay * q_arms[k, 1, 1]
