@@ -11,7 +11,7 @@ from linereg.sim.synthetic import paper_scene
 
 def test_verdicts_on_a_paper_scene(rng):
     scene = paper_scene(rng, 100, 0.3, 0.3, 2.0)
-    view = SimpleNamespace(segments=scene.lines3d, visible=None, parts=None)
+    view = SimpleNamespace(segments=scene.lines3d, visible=None, parts=None, chunks=None)
     reg = linereg.register(scene.lines2d, scene.lines3d, scene.camera)
     assert reg.success
     check = search_check.check(scene.lines2d, view, scene.camera, scene.cam_from_world, reg, True)
