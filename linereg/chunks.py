@@ -16,7 +16,7 @@ import numpy as np
 from .camera import Camera
 
 CHUNK_SEGMENTS = 64  # segments per chunk, on average
-# maps with fewer segments are not cut into chunks by ``Chunks.of``: a projection of all of them costs
+# maps with fewer segments are not cut into chunks by ``Chunks.of_map``: a projection of all of them costs
 # microseconds
 CHUNKED_FROM = 4096
 
@@ -107,7 +107,7 @@ def kept_chunks(
     largest value of its function over a box (its centre's, plus the half-sizes along |w|, w = R^T n); a
     face the whole box lies outside of by more than rounding rules the box out."""
     fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    normals = np.array(
+    normals = np.array(  # ``inward_normals`` (rows), and the depth axis
         [
             [1.0, 0.0, (cx + 1.5) / fx],
             [-1.0, 0.0, (width + 0.5 - cx) / fx],

@@ -78,9 +78,9 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
         return cached[1]
     segments = line_map.segments[index]
     clusters = subset_clusters(line_map.clusters, index, segment_lengths(segments))
-    points = subset_points(map_view(line_map, None, config).points, index, len(line_map.segments))
+    whole = map_view(line_map, None, config)
+    points = subset_points(whole.points, index, len(line_map.segments))
     signatures = map_signatures(points, clusters.labels, clusters.directions)
-    whole = map_view(line_map, None, config).chunks
     return MapView(
         segments,
         clusters,
@@ -89,7 +89,7 @@ def map_view(line_map: LineMap, index: np.ndarray | None, config: RegisterConfig
         parts=_subset_parts(line_map, index),
         accuracy_m=line_map.accuracy_m,
         footprint=line_map.surface_footprint if _has_surfaces(line_map) else None,
-        chunks=None if whole is None else whole.subset(index),
+        chunks=None if whole.chunks is None else whole.chunks.subset(index),
     )
 
 

@@ -38,7 +38,7 @@ class Visibility:
     def __init__(
         self, segments: np.ndarray, surfaces: Surfaces | None, config: VisibilityConfig | None = None
     ):
-        self.segments = segments
+        self.segments = np.ascontiguousarray(segments, dtype=np.float64)  # as the compiled sampling reads it
         self.surfaces = surfaces if surfaces is not None and len(surfaces) else None
         self.config = config or VisibilityConfig()
         self._scene: Any = None
@@ -68,7 +68,7 @@ class Visibility:
         # (widened by a pixel) is left out before the exact clipping to the near plane and the image, which
         # would leave it out too; the rest are sampled every ``sample_px`` of their image
         kept, count, owner, tt, points = _samples(
-            np.ascontiguousarray(self.segments), rows, a, b, cfg.min_depth_m, camera.fx, camera.fy, camera.cx,
+            self.segments, rows, a, b, cfg.min_depth_m, camera.fx, camera.fy, camera.cx,
             camera.cy, float(camera.width), float(camera.height), cfg.sample_px, cfg.max_samples,
         )  # fmt: skip
         rows = rows[kept]
