@@ -80,15 +80,25 @@ NO_CHUNKS = Chunks(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)))  #
 
 def inward_normals(camera: Camera) -> np.ndarray:
     """Returns (3, 4) the camera-frame inward normals of the side faces of the pyramid through the camera
-    centre and the image border widened by a pixel (the exact clipping's border lies half a pixel out)."""
+    centre and the image border widened by a pixel (the exact clipping's border lies half a pixel out):
+    ``side_normals`` as columns."""
+    return side_normals(
+        camera.fx, camera.fy, camera.cx, camera.cy, float(camera.width), float(camera.height)
+    ).T
+
+
+@numba.njit(cache=True, nogil=True)
+def side_normals(fx: float, fy: float, cx: float, cy: float, width: float, height: float) -> np.ndarray:
+    """Returns (4, 3) rows: the camera-frame inward normals of the pyramid's side faces through the image
+    border widened by a pixel (u >= -1.5, u <= width + 0.5, v >= -1.5, v <= height + 0.5)."""
     return np.array(
         [
-            [1.0, 0.0, (camera.cx + 1.5) / camera.fx],  # u >= -1.5
-            [-1.0, 0.0, (camera.width + 0.5 - camera.cx) / camera.fx],  # u <= width + 0.5
-            [0.0, 1.0, (camera.cy + 1.5) / camera.fy],  # v >= -1.5
-            [0.0, -1.0, (camera.height + 0.5 - camera.cy) / camera.fy],  # v <= height + 0.5
+            [1.0, 0.0, (cx + 1.5) / fx],
+            [-1.0, 0.0, (width + 0.5 - cx) / fx],
+            [0.0, 1.0, (cy + 1.5) / fy],
+            [0.0, -1.0, (height + 0.5 - cy) / fy],
         ]
-    ).T
+    )
 
 
 @numba.njit(cache=True, nogil=True)
@@ -103,19 +113,12 @@ def kept_chunks(
 ) -> np.ndarray:  # pragma: no cover - numba
     """Returns (C,) bool: the chunks (boxes ``centre`` +- ``half``) not wholly outside a face of the
     pyramid of (4, 4) ``T`` (cam_from_world), ``intrinsics`` (fx, fy, cx, cy) and the image ``width`` x
-    ``height`` widened by a pixel (``inward_normals``), nor wholly nearer than ``near``: for each face, the
+    ``height`` widened by a pixel (``side_normals``), nor wholly nearer than ``near``: for each face, the
     largest value of its function over a box (its centre's, plus the half-sizes along |w|, w = R^T n); a
     face the whole box lies outside of by more than rounding rules the box out."""
-    fx, fy, cx, cy = intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3]
-    normals = np.array(  # ``inward_normals`` (rows), and the depth axis
-        [
-            [1.0, 0.0, (cx + 1.5) / fx],
-            [-1.0, 0.0, (width + 0.5 - cx) / fx],
-            [0.0, 1.0, (cy + 1.5) / fy],
-            [0.0, -1.0, (height + 0.5 - cy) / fy],
-            [0.0, 0.0, 1.0],
-        ]
-    )
+    normals = np.empty((5, 3))  # the side faces, then the depth axis
+    normals[:4] = side_normals(intrinsics[0], intrinsics[1], intrinsics[2], intrinsics[3], width, height)
+    normals[4, 0], normals[4, 1], normals[4, 2] = 0.0, 0.0, 1.0
     w, offset = np.empty((5, 3)), np.empty(5)
     largest = 0.0
     for f in range(5):

@@ -262,7 +262,7 @@ def project_clipped(
     mask = np.ones(len(lines3d), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
     T = np.ascontiguousarray(cam_from_world, dtype=np.float64)
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
-    c = chunks or NO_CHUNKS
+    c = NO_CHUNKS if chunks is None else chunks
     return _project_clipped(
         lines3d, T, intrinsics, float(camera.width), float(camera.height), min_depth_m, mask, c.of, c.centre,
         c.half,

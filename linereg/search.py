@@ -1045,7 +1045,7 @@ def solve_locally(
     segments = np.ascontiguousarray(lines3d, dtype=np.float64).reshape(-1, 6)
     mask = np.ones(len(segments), np.bool_) if visible is None else np.asarray(visible, dtype=np.bool_)
     intrinsics = np.array([camera.fx, camera.fy, camera.cx, camera.cy], dtype=np.float64)
-    c = chunks or NO_CHUNKS
+    c = NO_CHUNKS if chunks is None else chunks
     found, pose, explained, unexplained, pairs, cover = _solve_compiled(
         segments, np.ascontiguousarray(cam_from_world, dtype=np.float64), intrinsics, float(camera.width),
         float(camera.height), score_config.min_depth_m, mask, c.of, c.centre, c.half, image.segments, image.angles, image.lengths,

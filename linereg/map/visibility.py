@@ -23,7 +23,7 @@ import numba
 import numpy as np
 
 from ..camera import Camera
-from ..chunks import Chunks
+from ..chunks import Chunks, side_normals
 from ..config import VisibilityConfig
 from ..geometry import camera_center
 from .surfaces import Surfaces
@@ -247,14 +247,7 @@ def _samples(
     (1 - s) + s z_a)). The rules written plainly with numpy, which this reproduces to the bit:
     ``tests/plain_visibility.py``."""
     n_in = len(rows)
-    inward = np.array(
-        [
-            [1.0, 0.0, (cx + 1.5) / fx],
-            [-1.0, 0.0, (width + 0.5 - cx) / fx],
-            [0.0, 1.0, (cy + 1.5) / fy],
-            [0.0, -1.0, (height + 0.5 - cy) / fy],
-        ]
-    )
+    inward = side_normals(fx, fy, cx, cy, width, height)
     kept = np.empty(n_in, np.int64)
     lo_t, hi_t, count = np.empty(n_in), np.empty(n_in), np.empty(n_in, np.int64)
     n = 0
