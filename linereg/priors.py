@@ -75,6 +75,65 @@ class Prior:
         """(3,) the map's down direction (world frame)."""
         return self.world_down if self.world_down is not None else np.array([0.0, 0.0, -1.0])
 
+    def to_dict(self) -> dict:
+        """Returns the prior as JSON-ready numbers (the fields set; ``from_dict`` reads it back)."""
+        out: dict = {}
+        if self.cam_from_world is not None:
+            out["cam_from_world"] = self.cam_from_world.tolist()
+            out["sigma_rot_deg"] = float(self.sigma_rot_deg)  # type: ignore[arg-type]
+        elif self.position is not None:
+            out["position"] = self.position.tolist()
+        if self.radius_m is not None:
+            out["radius_m"] = float(self.radius_m)
+        if self.gravity is not None:
+            out["gravity"] = self.gravity.tolist()
+            out["gravity_sigma_deg"] = float(self.gravity_sigma_deg)
+        if self.world_down is not None:
+            out["world_down"] = self.world_down.tolist()
+        return out
+
+    @classmethod
+    def from_dict(cls, d: object, source: str = "prior") -> Prior:
+        """Returns the Prior of a JSON object: ``position`` + ``radius_m``, or a pose (``cam_from_world``, or
+        ``world_from_cam``: the camera's pose in the world, as TUM files and SLAM systems write it) with
+        ``sigma_rot_deg`` and ``radius_m`` (or ``sigma_pos_m``), and/or ``gravity`` (camera frame) with
+        ``gravity_sigma_deg``, ``world_down``. InvalidInputError naming ``source`` and the key otherwise."""
+        if not isinstance(d, dict):
+            raise InvalidInputError(f"{source}: a prior must be a JSON object, got {type(d).__name__}")
+        unknown = sorted(set(d) - PRIOR_KEYS)
+        if unknown:
+            raise InvalidInputError(
+                f"{source}: unknown prior key(s) {', '.join(map(repr, unknown))} "
+                f"(known: {', '.join(sorted(PRIOR_KEYS))})"
+            )
+        if "cam_from_world" in d and "world_from_cam" in d:
+            raise InvalidInputError(f"{source}: give cam_from_world or world_from_cam, not both")
+        fields = dict(d)
+        if "world_from_cam" in fields:
+            from .geometry import invert
+
+            fields["cam_from_world"] = invert(
+                check_rigid(fields.pop("world_from_cam"), f"{source}: world_from_cam")
+            )
+        if fields.get("cam_from_world") is not None and fields.get("position") is not None:
+            raise InvalidInputError(
+                f"{source}: give a position or a pose, not both (a pose holds its position)"
+            )
+        for key in ("radius_m", "sigma_rot_deg", "sigma_pos_m", "gravity_sigma_deg"):
+            value = fields.get(key)
+            if value is not None and (isinstance(value, bool) or not isinstance(value, int | float)):
+                raise InvalidInputError(f"{source}: {key} must be a number, got {value!r}")
+        try:
+            return cls(**fields)
+        except InvalidInputError as e:
+            raise InvalidInputError(f"{source}: {e}") from None
+
+
+PRIOR_KEYS = frozenset(
+    {"position", "radius_m", "cam_from_world", "world_from_cam", "sigma_rot_deg", "sigma_pos_m", "gravity",
+     "gravity_sigma_deg", "world_down"}
+)  # fmt: skip
+
 
 def _unit3(value: object, name: str) -> np.ndarray:
     v = np.asarray(value, dtype=np.float64).reshape(-1)

@@ -21,7 +21,7 @@ import zenoh
 
 import protocols
 from linereg.camera import Camera
-from linereg.errors import LineregError
+from linereg.errors import InvalidInputError, LineregError
 from linereg.registration import Registration
 from protocols import LocalizeRequest, keys, session
 from protocols.images import JPEG_MAGIC, PNG_MAGIC
@@ -336,16 +336,33 @@ def encode_image(image) -> tuple[bytes | np.ndarray, str]:
 
 
 def wire_prior(prior) -> protocols.Prior | None:
-    """Returns the wire Prior of a library or wire prior (same field names), or None."""
-    if prior is None:
-        return None
+    """Returns the wire Prior of a library or wire prior (same field names), or None: a pose's radius
+    travels as its 3-sigma ``sigma_pos_m`` (the library reads it back as that radius), gravity with its
+    sigma. A library prior whose map is not z-up (``world_down``) cannot be sent: the wire has no field
+    for it."""
+    if prior is None or isinstance(prior, protocols.Prior):
+        return prior
+    down = getattr(prior, "world_down", None)
+    if down is not None and not np.allclose(down, [0.0, 0.0, -1.0]):
+        raise InvalidInputError("prior world_down cannot be sent to the service (its maps are z-up)")
+    gravity = getattr(prior, "gravity", None)
+    gravity = None if gravity is None else np.asarray(gravity, dtype=np.float64)
+    gravity_sigma = float(getattr(prior, "gravity_sigma_deg", 5.0))
     if getattr(prior, "cam_from_world", None) is not None:  # a pose prior (its position is derived from it)
         rot_deg = prior.sigma_rot_deg
+        sigma_pos = prior.sigma_pos_m if prior.sigma_pos_m is not None else prior.radius_m / 3.0
         return protocols.Prior(
             cam_from_world=np.asarray(prior.cam_from_world, dtype=np.float64),
             sigma_rot_deg=5.0 if rot_deg is None else float(rot_deg),  # None: the library Prior's default
-            sigma_pos_m=float(prior.sigma_pos_m),
+            sigma_pos_m=float(sigma_pos),
+            gravity=gravity,
+            gravity_sigma_deg=gravity_sigma,
         )
-    return protocols.Prior(
-        position=np.asarray(prior.position, dtype=np.float64), radius_m=float(prior.radius_m)
-    )
+    if getattr(prior, "position", None) is not None:
+        return protocols.Prior(
+            position=np.asarray(prior.position, dtype=np.float64),
+            radius_m=float(prior.radius_m),
+            gravity=gravity,
+            gravity_sigma_deg=gravity_sigma,
+        )
+    return protocols.Prior(gravity=gravity, gravity_sigma_deg=gravity_sigma)

@@ -56,7 +56,7 @@ def stand_in(monkeypatch):
         save(self, image, record)
         state["saved"] += 1
 
-    def localize(image, line_map, camera, config=None):
+    def localize(image, line_map, camera, config=None, prior=None):
         k = int(image[0, 0]) * 256 + int(image[0, 1])
         CALLS.append(k)
         return Registration(True, cam_from_world=expected_pose(k), num_inliers=k % 7)

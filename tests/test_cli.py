@@ -141,6 +141,50 @@ def test_demo_photos_never_claim_a_wrong_pose(scene, files):
             assert rot < 2.0 and pos < 0.5, (rot, pos)
 
 
+def test_localize_searches_within_priors(scene, files, capsys, tmp_path):
+    """``--prior``: a TUM file of rough poses (each truth turned 1.5 deg and moved 0.2 m) with --prior-sigma,
+    and per-image JSON position priors that leave the truth out: every record names the prior it was
+    searched within, and no pose is claimed outside it."""
+    from scipy.spatial.transform import Rotation
+
+    from linereg.io import write_tum
+
+    folder, images = files
+    rough = []
+    for k, truth in enumerate(scene.cam_from_world):
+        turn = Rotation.from_rotvec(np.radians(1.5) * np.array([0.6, 0.8, 0.0])).as_matrix()
+        T = truth.copy()
+        T[:3, :3] = turn @ truth[:3, :3]
+        T[:3, 3] = -T[:3, :3] @ (camera_center(truth) + np.array([0.2 * (-1) ** k, 0.0, 0.0]))
+        rough.append(T)
+    write_tum(tmp_path / "rough.tum", [0.0, 1.0], rough)  # the images' stems are not numbers: 0, 1
+    base = ["localize", "--map", folder / "demo.npz", "--camera", folder / "camera.json", *images]
+    code, _, err = run(capsys, *base, "--out", tmp_path / "a.json", "--prior", tmp_path / "rough.tum",
+                       "--prior-sigma", 5, 0.5)  # fmt: skip
+    assert code == 0, err
+    records = json.loads((tmp_path / "a.json").read_text())
+    for k, path in enumerate(images):
+        record = records[str(path)]
+        np.testing.assert_allclose(record["prior"]["cam_from_world"], rough[k], atol=1e-6)
+        assert (record["prior"]["sigma_rot_deg"], record["prior"]["radius_m"]) == (5.0, 0.5)
+        if record["success"]:
+            rot, pos, _ = pose_errors(np.array(record["cam_from_world"]), scene.cam_from_world[k])
+            assert rot < 2.0 and pos < 0.5, (rot, pos)
+    # 30 m off the truth within 5 m: the truth is outside, and nothing outside is an answer
+    away = {
+        path.name: {"position": (camera_center(T) + np.array([30.0, 0.0, 0.0])).tolist(), "radius_m": 5.0}
+        for path, T in zip(images, scene.cam_from_world, strict=True)
+    }
+    (tmp_path / "away.json").write_text(json.dumps(away))
+    code, _, err = run(capsys, *base, "--out", tmp_path / "b.json", "--prior", tmp_path / "away.json")
+    assert code == 0, err
+    for path, record in json.loads((tmp_path / "b.json").read_text()).items():
+        assert record["prior"]["position"] == away[Path(path).name]["position"]
+        if record["success"]:
+            centre = camera_center(np.array(record["cam_from_world"]))
+            assert np.linalg.norm(centre - record["prior"]["position"]) <= 5.0 + 1e-9
+
+
 def current_umask() -> int:
     mask = os.umask(0o022)
     os.umask(mask)
@@ -253,6 +297,28 @@ def test_localize_rejects_bad_camera_files(small, tmp_path, capsys, name, text, 
     assert_user_error(code, err, name)
     assert problem in err
     assert not (tmp_path / "poses.json").exists() and not leftovers(tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("name", "text", "extra", "problem"),
+    [
+        ("some.json", json.dumps({"other.png": {"position": [0, 0, 0], "radius_m": 5}}), [], "ok.png"),
+        ("typo.json", json.dumps({"position": [0, 0, 0], "radus_m": 5}), [], "radus_m"),
+        ("rough.tum", "0 1 2 3 0 0 0 1\n", [], "--prior-sigma"),
+        ("far.tum", "7 1 2 3 0 0 0 1\n", ["--prior-sigma", "5", "0.5"], "no pose within"),
+        ("site.json", json.dumps({"position": [0, 0, 0], "radius_m": 5}), ["--prior-sigma", "-1", "1"], "positive"),
+    ],
+)  # fmt: skip
+def test_localize_rejects_priors_that_do_not_fit(small, tmp_path, capsys, name, text, extra, problem):
+    """A prior file that names no prior for an image, mistypes a key, or a TUM file without its sigma: said
+    before anything is localized, naming the file."""
+    (tmp_path / name).write_text(text)
+    argv = localize_args(small, tmp_path, [small / "ok.png"])
+    code, _, err = run(capsys, *argv, "--prior", tmp_path / name, *extra)
+    assert_user_error(code, err, problem)
+    assert not (tmp_path / "poses.json").exists() and not leftovers(tmp_path)
+    code, _, err = run(capsys, *argv, "--prior-sigma", "5", "0.5")
+    assert_user_error(code, err, "--prior")
 
 
 def test_localize_rejects_a_corrupt_map(small, tmp_path, capsys):

@@ -144,3 +144,21 @@ def test_missing_images_are_said_before_anything_is_sent(endpoint, images, tmp_p
     argv = ["--connect", endpoint, "--camera", tmp_path / "camera.json", *images, tmp_path / "typo.png"]
     code, records, err = query(capsys, *argv)
     assert code == 2 and not records and f"image file(s) not found: {tmp_path / 'typo.png'}" in err
+
+
+def test_priors_are_sent_and_recorded(endpoint, images, tmp_path, capsys):
+    """``--prior``: each image's prior (per image from JSON) goes with its query and into its record; an
+    image the file names no prior for is said before anything is sent."""
+    priors = {p.name: {"position": [float(k), 2.0, 1.5], "radius_m": 10.0} for k, p in enumerate(images)}
+    (tmp_path / "priors.json").write_text(json.dumps(priors))
+    argv = ["--connect", endpoint, "--camera", tmp_path / "camera.json", *images]
+    code, records, err = query(capsys, *argv, "--prior", tmp_path / "priors.json")
+    assert code == 0, err
+    assert_answered(records, images)
+    for record in records:
+        assert record["prior"] == priors[record["image"].rsplit("/", 1)[-1]]
+    del priors["b.jpg"]
+    (tmp_path / "priors.json").write_text(json.dumps(priors))
+    code, records, err = query(capsys, *argv, "--prior", tmp_path / "priors.json")
+    assert code != 0 and not records
+    assert "b.jpg" in err and "priors.json" in err and "Traceback" not in err

@@ -79,3 +79,33 @@ def test_track_takes_a_top_speed_and_refuses_a_bad_one(files, tmp_path, capsys):
     assert main([str(a) for a in [*argv[:-1], tmp_path / "other.tum", "--max-speed", "-1"]]) != 0
     assert "--max-speed" in capsys.readouterr().err
     assert not (tmp_path / "other.tum").exists()
+
+
+@pytest.mark.parametrize("smooth", [False, True])
+def test_track_starts_from_a_given_pose(files, tmp_path, capsys, smooth):
+    """``--start``: the first frame is tracked from a pose prior (given as world_from_cam, as a robot's
+    dock pose is written); a position alone is refused, naming the option."""
+    from linereg.geometry import invert, pose_errors
+
+    _, truth, _ = _scene(5)
+    start = {"world_from_cam": invert(truth[0]).tolist(), "sigma_rot_deg": 1.0, "radius_m": 0.15}
+    (tmp_path / "start.json").write_text(json.dumps(start))
+    argv = ["track", "--map", files / "scene.linemap", "--camera", files / "camera.json", files / "frames"]
+    argv += [
+        "--tum",
+        tmp_path / "out.tum",
+        "--out",
+        tmp_path / "out.json",
+        "--start",
+        tmp_path / "start.json",
+    ]
+    code = main([str(a) for a in argv] + (["--smooth"] if smooth else []))
+    assert code == 0, capsys.readouterr().err
+    records = json.loads((tmp_path / "out.json").read_text())
+    assert records[0]["success"], records[0]["reason"]
+    rot, pos, _ = pose_errors(np.array(records[0]["cam_from_world"]), truth[0])
+    assert rot < 0.5 and pos < 0.05, (rot, pos)
+    (tmp_path / "where.json").write_text(json.dumps({"position": [0, 0, 0], "radius_m": 1}))
+    code = main([str(a) for a in [*argv[:-1], tmp_path / "where.json"]])
+    err = capsys.readouterr().err
+    assert code != 0 and "--start" in err and "pose" in err and "Traceback" not in err

@@ -13,6 +13,15 @@ it is recorded as failed, named on stderr, and the command exits with 2 at the e
 
 Each JSON record has a ``timestamp``: the image's time in the ``--tum`` file (the file stems when every
 stem is a number, as in TUM datasets, else the image's position on the command line: 0, 1, 2, ...).
+
+What is known beforehand narrows the search (``--prior FILE``): a JSON prior for every image (a site's
+GNSS position and radius, a rough camera-LiDAR extrinsic with its sigmas), JSON priors per image, or a
+TUM trajectory of rough poses (a SLAM run, the odometry) with ``--prior-sigma DEG M``. Poses outside a
+prior are neither answers nor rivals: give a radius that holds the truth. Examples:
+  {"position": [412.0, 87.5, 1.6], "radius_m": 30}
+  {"cam_from_world": [[...], [...], [...], [0, 0, 0, 1]], "sigma_rot_deg": 5, "radius_m": 0.5}
+  {"img_0001.png": {"position": [...], "radius_m": 10}, "img_0002.png": {...}}
+  linereg localize --map site.linemap --camera cam.json photos/*.png --prior slam.tum --prior-sigma 5 1
 """
 
 from __future__ import annotations
@@ -65,7 +74,40 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "--config", type=Path, help="JSON file of registration overrides, nested per section (default: none)"
     )
+    add_prior_arguments(p)
     p.set_defaults(func=run)
+
+
+def add_prior_arguments(p: argparse.ArgumentParser) -> None:
+    """``--prior FILE`` and ``--prior-sigma DEG M`` (``linereg localize``, ``linereg query``)."""
+    p.add_argument(
+        "--prior",
+        type=Path,
+        metavar="FILE",
+        help="what is known of the poses: a JSON prior (for every image or per image) or a TUM file of "
+        "rough poses (see above)",
+    )
+    p.add_argument(
+        "--prior-sigma",
+        type=float,
+        nargs=2,
+        metavar=("DEG", "M"),
+        help="how rough the --prior poses are: rotation sigma (degrees) and radius (metres); needed for a TUM "
+        "file, fills what a JSON prior leaves out",
+    )
+
+
+def read_prior_arguments(args: argparse.Namespace, images: Sequence[Path], stamps: Sequence[float]) -> list:
+    """Returns the Prior (or None) of each image from ``--prior`` / ``--prior-sigma``, every image checked:
+    one without a prior is an error before anything is localized."""
+    if args.prior is None:
+        if args.prior_sigma is not None:
+            raise InvalidInputError("--prior-sigma needs --prior FILE (the poses it qualifies)")
+        return [None for _ in images]
+    from ..prior_files import read_priors
+
+    table = read_priors(args.prior, args.prior_sigma)
+    return [table.for_image(path, stamp) for path, stamp in zip(images, stamps, strict=True)]
 
 
 def run(args: argparse.Namespace) -> int:
@@ -87,8 +129,13 @@ def run(args: argparse.Namespace) -> int:
     if args.config:
         io.read_config(args.config)  # read again by each worker; a bad file is reported once, here
     cameras = io.read_cameras(args.camera)
-    jobs = [(str(p), io.camera_for_image(cameras, p, args.camera)) for p in args.images]
-    stamps = dict(zip((j[0] for j in jobs), tum_timestamps(args.images), strict=True))
+    times = tum_timestamps(args.images)
+    priors = read_prior_arguments(args, args.images, times)
+    jobs = [
+        (str(p), io.camera_for_image(cameras, p, args.camera), prior)
+        for p, prior in zip(args.images, priors, strict=True)
+    ]
+    stamps = dict(zip((j[0] for j in jobs), times, strict=True))
     results = io.read_json(args.out) if args.resume and args.out.exists() else {}
     for path, record in results.items():
         if path in stamps:
@@ -199,11 +246,11 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
     from ..localization import localize
     from ..overlay import draw_overlay
 
-    path, camera = job
+    path, camera, prior = job
     line_map = _worker_state["map"]
     try:
         image = io.read_image(path)
-        result = localize(image, line_map, camera, _worker_state["config"])
+        result = localize(image, line_map, camera, _worker_state["config"], prior=prior)
     except LineregError as e:  # a bad input file: named at the end, the batch goes on
         message = str(e) if path in str(e) else f"{path}: {e}"
         return path, {"success": False, "reason": message, "input_error": True}
@@ -217,4 +264,6 @@ def _localize_one(job: tuple) -> tuple[str, dict]:
         io.write_image_atomic(os.path.join(overlay_dir, Path(path).stem + ".png"), picture)
     record = result.to_dict()
     record.pop("matches")
+    if prior is not None:
+        record["prior"] = prior.to_dict()  # what the pose was searched within
     return path, record

@@ -7,6 +7,9 @@ Prints one JSON object per image on stdout: {"image": path, ...the Registration.
 "error": code, "message": ...} when no pose came back. The camera file is read as by ``linereg localize``:
 one shared camera, one per image (by path, file name or stem), or a COLMAP cameras.txt.
 
+``--prior FILE`` (``--prior-sigma DEG M``) sends what is known of each pose, read as by ``linereg
+localize``: a JSON prior for every image or per image, or a TUM file of rough poses.
+
 An image that cannot be used (unreadable, corrupt, another size than its camera, refused by the service
 as bad input) is named on stderr and the others are still sent; the exit code is then 2. When the service
 did not answer some images (busy, timeout, internal error) the exit code is 1.
@@ -21,6 +24,7 @@ from pathlib import Path
 
 from ..errors import InvalidInputError, LineregError
 from . import description
+from .localize import add_prior_arguments, read_prior_arguments, tum_timestamps
 
 INPUT_ERRORS = ("bad_request", "too_large")  # service error codes about the image itself
 
@@ -46,6 +50,7 @@ def add_parser(subparsers) -> None:
     parser.add_argument("--timeout", type=float, default=10.0, help="seconds per image (default 10)")
     parser.add_argument("--zenoh-config", help="zenoh json5 config file (TLS, credentials)")
     parser.add_argument("--matches", action="store_true", help="also return the 2D-3D matches")
+    add_prior_arguments(parser)
     parser.set_defaults(func=run)
 
 
@@ -59,12 +64,16 @@ def run(args: argparse.Namespace) -> int:
     if missing:  # as in `linereg localize`: a typo is said before anything is sent
         raise InvalidInputError(f"image file(s) not found: {', '.join(missing[:5])}")
     cameras = io.read_cameras(args.camera)
-    jobs = [(path, io.camera_for_image(cameras, path, args.camera)) for path in args.images]
+    priors = read_prior_arguments(args, args.images, tum_timestamps(args.images))
+    jobs = [
+        (path, io.camera_for_image(cameras, path, args.camera), prior)
+        for path, prior in zip(args.images, priors, strict=True)
+    ]
     bad, failed = [], 0
     with _connect(args) as client:
         _check_served(client)
-        for path, camera in jobs:
-            record = _query_one(client, path, camera, args)
+        for path, camera, prior in jobs:
+            record = _query_one(client, path, camera, prior, args)
             print(json.dumps(io.jsonable(record), allow_nan=False), flush=True)
             if record.get("input_error"):
                 bad.append(record["message"])
@@ -77,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     return 2 if bad else 1 if failed else 0
 
 
-def _query_one(client, path: Path, camera, args: argparse.Namespace) -> dict:
+def _query_one(client, path: Path, camera, prior, args: argparse.Namespace) -> dict:
     """Returns the JSON record of one image: its Registration, or the error that stopped it."""
     import zenoh
 
@@ -85,7 +94,7 @@ def _query_one(client, path: Path, camera, args: argparse.Namespace) -> dict:
 
     try:
         image = _wire_image(path, camera)
-        reg = client.localize(image, camera, timeout=args.timeout, return_matches=args.matches)
+        reg = client.localize(image, camera, prior, timeout=args.timeout, return_matches=args.matches)
     except zenoh.ZError as e:  # the session broke (router gone): this image is not answered
         return {"image": str(path), "error": "unreachable", "message": f"{path}: {e}"}
     except ServiceError as e:
@@ -94,7 +103,7 @@ def _query_one(client, path: Path, camera, args: argparse.Namespace) -> dict:
     except LineregError as e:  # a file this side cannot use: named, and the batch goes on
         message = str(e) if str(path) in str(e) else f"{path}: {e}"
         return {"image": str(path), "error": "bad_input", "message": message, "input_error": True}
-    return {"image": str(path), **reg.to_dict()}
+    return {"image": str(path), **reg.to_dict()} | ({} if prior is None else {"prior": prior.to_dict()})
 
 
 def _wire_image(path: Path, camera):

@@ -11,6 +11,10 @@ poses in the odometry's own frame; each frame takes the nearest odometry pose in
 ones give the relative motion. Live tracking (``linereg.Tracker``) by default, one frame at a time;
 ``--smooth`` localizes the whole sequence in one graph (``linereg.localize_sequence``) instead.
 
+``--start FILE``: where the camera starts, a JSON pose prior (``{"cam_from_world": 4 x 4, "sigma_rot_deg":
+1, "radius_m": 0.1}`` or ``world_from_cam``; a robot leaving its dock, the last run's end): the first frame
+is tracked from it instead of localized over the whole map.
+
 ``--tum`` gets every posed frame (its own fix, or placed by its neighbours); ``--out`` a JSON record per
 frame (success, reason, the tracker's event, pose, covariance).
 """
@@ -54,6 +58,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="the camera's top speed (m/s): after a long loss without odometry, relocalize within its reach "
         "since the last fix instead of over the whole map",
     )
+    p.add_argument(
+        "--start",
+        type=Path,
+        metavar="FILE",
+        help="JSON pose prior of the first frame (cam_from_world or world_from_cam, sigma_rot_deg, radius_m)",
+    )
     p.set_defaults(func=run)
 
 
@@ -70,16 +80,30 @@ def run(args: argparse.Namespace) -> int:
     cameras = io.read_cameras(args.camera)
     if not hasattr(cameras, "fx"):
         raise InvalidInputError(f"--camera {args.camera}: holds several cameras; track needs one")
+    start = start_prior(args.start) if args.start else None
     stamps, frames = frame_source(args.frames)
     relative = None
     if args.odometry:
         relative = odometry_steps(*io.read_tum(args.odometry), stamps)
     line_map = LineMap.load(args.map)
     if args.smooth:
-        results, events = _smooth(list(frames), line_map, cameras, relative), None
+        results, events = _smooth(list(frames), line_map, cameras, relative, start), None
     else:
-        results, events = _track(frames, line_map, cameras, relative, stamps, args.max_speed)
+        results, events = _track(frames, line_map, cameras, relative, stamps, args.max_speed, start)
     return _write(args, stamps, results, events)
+
+
+def start_prior(path: Path):
+    """Returns the Prior of a ``--start`` file: one JSON pose prior (``prior_files``), which must hold a pose."""
+    from ..prior_files import read_priors
+
+    table = read_priors(path)
+    if table.shared is None or table.shared.cam_from_world is None:
+        raise InvalidInputError(
+            f"--start {path}: needs one pose prior (cam_from_world or world_from_cam, with sigma_rot_deg and "
+            "radius_m), not a position alone or priors per image"
+        )
+    return table.shared
 
 
 def frame_source(paths: list[Path]) -> tuple[list[float], Iterable[np.ndarray]]:
@@ -127,11 +151,13 @@ def odometry_steps(times: np.ndarray, cam_from_odom: np.ndarray, stamps: list[fl
     return [a @ np.linalg.inv(b) for a, b in itertools.pairwise(poses)]
 
 
-def _track(frames, line_map, camera, relative, stamps, max_speed=None):
+def _track(frames, line_map, camera, relative, stamps, max_speed=None, start=None):
     from ..tracking import Tracker, TrackingConfig
     from .progress import Progress
 
     tracker = Tracker(line_map, camera, TrackingConfig(max_speed_m_s=max_speed))
+    if start is not None:  # the radius holds 3 sigma of the position
+        tracker.start_at(start.cam_from_world, start.sigma_rot_deg, start.radius_m / 3.0)
     results, events = [], []
     with Progress(len(stamps), "frames") as progress:
         for k, frame in enumerate(frames):
@@ -141,10 +167,10 @@ def _track(frames, line_map, camera, relative, stamps, max_speed=None):
     return results, events
 
 
-def _smooth(frames, line_map, camera, relative):
+def _smooth(frames, line_map, camera, relative, start=None):
     from ..sequence import localize_sequence
 
-    return localize_sequence(frames, line_map, camera, relative)
+    return localize_sequence(frames, line_map, camera, relative, prior=start)
 
 
 def _write(args: argparse.Namespace, stamps: list[float], results: list, events: list[str] | None) -> int:
