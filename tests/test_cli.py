@@ -201,6 +201,23 @@ def test_demo_smoke(scene, capsys, tmp_path, monkeypatch):
     assert "localized" in out and len(list(tmp_path.glob("*.png"))) == NUM_IMAGES
 
 
+def test_bench_demo_with_a_rough_prior(scene, capsys, tmp_path, monkeypatch):
+    """``bench demo --prior ROT POS``: each photo searched near a rough guess of its pose (the calibration
+    case), recorded in results.json; never a wrong pose claimed."""
+    import linereg.sim.demo_scene
+
+    monkeypatch.setattr(linereg.sim.demo_scene, "make_demo_scene", lambda seed, num_images: scene)
+    argv = ["bench", "demo", "--images", NUM_IMAGES, "--out", tmp_path]
+    code, out, err = run(capsys, *argv, "--prior", 5, 0.5)
+    assert code == 0, err
+    results = json.loads((tmp_path / "results.json").read_text())
+    assert results["options"]["prior"] == {"rotation_deg": 5.0, "position_m": 0.5}
+    assert len(results["seeds"][0]["images"]) == NUM_IMAGES
+    assert results["summary"]["stats"]["wrong_claimed"] == 0 and "localized:" in out
+    code, _, err = run(capsys, *argv, "--prior", -1, 0.5)
+    assert_user_error(code, err, "--prior")
+
+
 # --- bad input: a clear message naming the file, exit code != 0, no traceback, nothing half-written ---
 
 
