@@ -4,8 +4,10 @@ turned by small angles (``turned_rival``), whose scores come from ``score.shifte
 from dataclasses import replace
 
 import numpy as np
+import pytest
 
 import linereg
+from linereg.camera import Camera
 from linereg.config import RegisterConfig
 from linereg.geometry import (
     camera_center,
@@ -15,9 +17,16 @@ from linereg.geometry import (
     rotation_from_vector,
 )
 from linereg.localization import map_view
-from linereg.pipeline import fine_value, in_basin, no_worse, turned_rival, view_score
-from linereg.refine import refine_pose
-from linereg.score import image_lines, project_clipped, score_pose, score_projected, shifted_values
+from linereg.pipeline import fine_value, in_basin, no_worse, slid, turned_rival, view_score
+from linereg.refine import Refinement, refine_pose
+from linereg.score import (
+    image_lines,
+    project_clipped,
+    project_segments,
+    score_pose,
+    score_projected,
+    shifted_values,
+)
 from linereg.sim.synthetic import decoy_scene, look_at, paper_scene, project_visible
 
 
@@ -441,3 +450,41 @@ def test_a_refinement_that_loses_the_score_keeps_the_pose_the_score_found(rng):
     away[2, 3] -= 1e4  # every map line behind the camera
     assert score_pose(image, scene.lines3d, scene.camera, away, config.score).value <= 0
     assert no_worse(away, lost, image, view, scene.camera, config) is lost
+
+
+def test_a_refinement_that_slides_along_a_valley_is_no_answer():
+    """``slid``: a facade seen head-on 20 m away keeps its projection within a few pixels when the camera
+    turns 2.5 deg and moves the 0.87 m that compensates, so a refinement making that move hardly changes the
+    score: it slid along a valley, a distinct pose the lines do not tell from the start. A small move, or a
+    move that gains more than the margin (a start 2 m off brought home), is no slide."""
+    rows, cols = np.meshgrid(np.arange(-6.0, 7.0, 1.5), np.arange(-9.0, 10.0, 1.5), indexing="ij")
+    z = 20.0
+    horizontal = np.c_[cols.ravel() - 0.6, rows.ravel(), np.full(rows.size, z),
+                       cols.ravel() + 0.6, rows.ravel(), np.full(rows.size, z)]  # fmt: skip
+    vertical = np.c_[cols.ravel(), rows.ravel() - 0.6, np.full(rows.size, z),
+                     cols.ravel(), rows.ravel() + 0.6, np.full(rows.size, z)]  # fmt: skip
+    lines3d = np.r_[horizontal, vertical]
+    camera = Camera(fx=500, fy=500, cx=320, cy=240, width=640, height=480)
+    truth = np.eye(4)  # at the origin, looking along +z
+    config = RegisterConfig()
+    lines2d, _ = project_segments(lines3d, camera, truth, config.score.min_depth_m)
+    image = image_lines(lines2d, camera, config.score)
+    view = map_view(linereg.LineMap.from_segments(lines3d), None, config)
+
+    def refinement(T: np.ndarray) -> Refinement:
+        return Refinement(T, score_pose(image, lines3d, camera, T, config.score), np.eye(6), 0.5, 1)
+
+    turn = np.radians(2.5)
+    centre = np.array([z * np.tan(turn), 0.0, 0.0])  # looks at the same facade point
+    R = rotation_from_vector([0.0, turn, 0.0])  # its axis R^T z turned towards -x
+    valley = make_cam_from_world(R, -R @ centre)
+    assert (
+        score_pose(image, lines3d, camera, valley, config.score).value > 0.85 * refinement(truth).score.value
+    )
+    moved = slid(truth, refinement(valley), image, view, camera, config)
+    assert moved is not None
+    assert moved[0] == pytest.approx(2.5, abs=1e-6) and moved[1] == pytest.approx(centre[0], abs=1e-6)
+    near = make_cam_from_world(rotation_from_vector([0.0, -np.radians(0.5), 0.0]), np.zeros(3))
+    assert slid(truth, refinement(near), image, view, camera, config) is None  # not a distinct pose
+    away = make_cam_from_world(np.eye(3), [-2.0, 0.0, 0.0])  # a start 2 m off, refined home
+    assert slid(away, refinement(truth), image, view, camera, config) is None
