@@ -346,18 +346,28 @@ def _cameras_from_json(obj: Any, path: Path) -> dict[str, Camera] | Camera:
     if isinstance(obj, dict) and "fx" in obj:
         return _camera(obj, str(path))
     if isinstance(obj, list):
-        out = {}
-        for i, item in enumerate(obj):
-            name = next(
-                (item[k] for k in ("file", "image", "name") if isinstance(item, dict) and k in item), None
-            )
-            if name is None:
-                raise FileFormatError(f"{path}: camera #{i}: missing key 'file' (the image name)")
-            out[str(name)] = _camera(item, f"{path}: {name}")
-        return out
+        return {name: _camera(item, f"{path}: {name}") for name, item in named_entries(obj, path, "camera")}
     if isinstance(obj, dict) and obj:
         return {str(name): _camera(item, f"{path}: {name}") for name, item in obj.items()}
     raise FileFormatError(f"{path}: no camera found (expected fx, fy, cx, cy, width, height)")
+
+
+IMAGE_KEYS = ("file", "image", "name")  # what names an entry's image in a list of per-image entries
+
+
+def named_entries(items: list, path: Path, kind: str) -> list[tuple[str, dict]]:
+    """Returns (image name, entry) of each entry of a JSON list of per-image ``kind`` objects (cameras,
+    priors), the name from its ``file``, ``image`` or ``name`` key; FileFormatError naming the entry
+    otherwise."""
+    out = []
+    for i, item in enumerate(items):
+        name = next((item[k] for k in IMAGE_KEYS if isinstance(item, dict) and k in item), None)
+        if name is None:
+            raise FileFormatError(
+                f"{path}: {kind} #{i}: missing key 'image' (or 'file', 'name': the image's name)"
+            )
+        out.append((str(name), item))
+    return out
 
 
 def _cameras_from_colmap(text: str, path: Path) -> dict[str, Camera]:

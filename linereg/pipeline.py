@@ -229,24 +229,15 @@ def _search_and_decide(
     # III-D: GTSAM refinement of the best distinct poses on their matched fragments
     with timer("refine"):
         contenders = _distinct(found, _found_pose, view.segments, config.decide)[: config.decide.contenders]
-        refined = [
-            no_worse(
-                f.cam_from_world,
-                refine_pose(
-                    image, view.segments, camera, f.cam_from_world, config.refine, config.score, view.visible
-                ),
-                image,
-                view,
-                camera,
-                config,
+        refined, slides = [], []
+        for f in contenders:
+            at_start = start_score(f.cam_from_world, image, view, camera, config)
+            fit = refine_pose(
+                image, view.segments, camera, f.cam_from_world, config.refine, config.score, view.visible
             )
-            for f in contenders
-        ]
-        # how far each refinement slid its start along a flat score (``slid``): the decision's to weigh
-        slides = [
-            slid(f.cam_from_world, r, image, view, camera, config)
-            for f, r in zip(contenders, refined, strict=True)
-        ]
+            refined.append(no_worse(f.cam_from_world, fit, image, view, camera, config, at_start))
+            # how far the refinement slid its start along a flat score: the decision's to weigh
+            slides.append(slid(f.cam_from_world, refined[-1], at_start, view, config))
         admitted = [k for k, r in enumerate(refined) if admits_pose(prior, r.cam_from_world)]
         refined, slides = [refined[k] for k in admitted], [slides[k] for k in admitted]
     if not refined:
@@ -955,29 +946,34 @@ def no_worse(
     view: MapView,
     camera: Camera,
     config: RegisterConfig,
+    before: Score | None = None,
 ) -> Refinement:
     """Returns the refinement of the (4, 4) pose ``start``, or ``start`` itself (with the refinement's
-    covariance and rms) when the refinement lowers its score below ``(1 - margin)`` of the start's: the fit
-    of matched fragments re-associates at a tolerance wider than the score's, and on real clutter wrong
-    pairs can pull it off what the score found (18 of the 71 refinements of the shared real photos with a
-    rough prior lost more than that). The score decides; a refinement that loses by the margin failed."""
-    # scored as ``refine_pose`` scores its result (the search's own score may be occlusion-aware)
-    before = score_pose(image, view.segments, camera, start, config.score, view.visible, view.chunks)
+    covariance and rms) when the refinement lowers its score below ``(1 - margin)`` of the start's
+    (``before``: its ``start_score``, None: scored here): the fit of matched fragments re-associates at a
+    tolerance wider than the score's, and on real clutter wrong pairs can pull it off what the score found
+    (18 of the 71 refinements of the shared real photos with a rough prior lost more than that). The score
+    decides; a refinement that loses by the margin failed."""
+    if before is None:
+        before = start_score(start, image, view, camera, config)
     if before.value <= 0.0 or refined.score.value >= (1.0 - config.decide.margin) * before.value:
         return refined
     return replace(refined, cam_from_world=start, score=before)
 
 
+def start_score(
+    start: np.ndarray, image: ImageLines, view: MapView, camera: Camera, config: RegisterConfig
+) -> Score:
+    """Returns the Score of a (4, 4) pose to be refined, as ``refine_pose`` scores its result (the search's
+    own score may be occlusion-aware): what ``no_worse`` and ``slid`` weigh the refinement against."""
+    return score_pose(image, view.segments, camera, start, config.score, view.visible, view.chunks)
+
+
 def slid(
-    start: np.ndarray,
-    refined: Refinement,
-    image: ImageLines,
-    view: MapView,
-    camera: Camera,
-    config: RegisterConfig,
+    start: np.ndarray, refined: Refinement, before: Score, view: MapView, config: RegisterConfig
 ) -> tuple[float, float] | None:
     """Returns (degrees, metres) the refinement moved the (4, 4) pose ``start`` when it moved it to a
-    distinct pose (``differs``) without raising its score by ``margin`` (scored as ``no_worse`` scores it),
+    distinct pose (``differs``) without raising its score (``before``: its ``start_score``) by ``margin``,
     else None. Such a move is a slide along a valley where a turn and a shift compensate: the image's lines
     do not fix the pose as far as distinct poses lie, whatever the fit's covariance says. On the rendered
     office subsampled to 10 % a search pose 1.7 deg / 0.16 m from the truth was refined to one 3.9 deg /
@@ -986,7 +982,6 @@ def slid(
     answer of the single-image benches changes (docs/measurements.md, session 52)."""
     if not differs(refined.cam_from_world, start, view.segments, config.decide):
         return None
-    before = score_pose(image, view.segments, camera, start, config.score, view.visible, view.chunks)
     if before.value <= 0.0 or refined.score.value > (1.0 + config.decide.margin) * before.value:
         return None
     turn = rotation_error_deg(refined.cam_from_world[:3, :3], start[:3, :3])

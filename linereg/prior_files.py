@@ -70,7 +70,7 @@ class PriorTable:
 def read_priors(path: str | os.PathLike, sigma: tuple[float, float] | None = None) -> PriorTable:
     """Returns the PriorTable of a JSON or TUM file (the module's formats); ``sigma``: (rotation degrees,
     radius metres) for the priors that do not give them (needed for a TUM file)."""
-    from .io import read_tum
+    from .io import IMAGE_KEYS, named_entries, read_tum
 
     path = Path(path)
     if sigma is not None:
@@ -101,15 +101,10 @@ def read_priors(path: str | os.PathLike, sigma: tuple[float, float] | None = Non
     if isinstance(obj, dict) and PRIOR_KEYS & set(obj):
         return PriorTable(str(path), shared=_prior(obj, sigma, str(path)))
     if isinstance(obj, list) and obj:
-        by_name = {}
-        for i, item in enumerate(obj):
-            name = next(
-                (item[k] for k in ("image", "file", "name") if isinstance(item, dict) and k in item), None
-            )
-            if name is None:
-                raise FileFormatError(f"{path}: prior #{i}: missing key 'image' (the image's name)")
-            fields = {k: v for k, v in item.items() if k not in ("image", "file", "name")}
-            by_name[str(name)] = _prior(fields, sigma, f"{path}: {name}")
+        by_name = {
+            name: _prior({k: v for k, v in item.items() if k not in IMAGE_KEYS}, sigma, f"{path}: {name}")
+            for name, item in named_entries(obj, path, "prior")
+        }
         return PriorTable(str(path), by_name=by_name)
     if isinstance(obj, dict) and obj:
         return PriorTable(

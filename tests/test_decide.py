@@ -481,10 +481,11 @@ def test_a_refinement_that_slides_along_a_valley_is_no_answer():
     assert (
         score_pose(image, lines3d, camera, valley, config.score).value > 0.85 * refinement(truth).score.value
     )
-    moved = slid(truth, refinement(valley), image, view, camera, config)
+    at_truth = refinement(truth).score
+    moved = slid(truth, refinement(valley), at_truth, view, config)
     assert moved is not None
     assert moved[0] == pytest.approx(2.5, abs=1e-6) and moved[1] == pytest.approx(centre[0], abs=1e-6)
     near = make_cam_from_world(rotation_from_vector([0.0, -np.radians(0.5), 0.0]), np.zeros(3))
-    assert slid(truth, refinement(near), image, view, camera, config) is None  # not a distinct pose
+    assert slid(truth, refinement(near), at_truth, view, config) is None  # not a distinct pose
     away = make_cam_from_world(np.eye(3), [-2.0, 0.0, 0.0])  # a start 2 m off, refined home
-    assert slid(away, refinement(truth), image, view, camera, config) is None
+    assert slid(away, refinement(truth), refinement(away).score, view, config) is None
