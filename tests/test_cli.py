@@ -80,6 +80,8 @@ def test_map_build_and_info(files, capsys):
     assert code == 0
     assert out.startswith(f"map 'cloud' ({folder / 'demo.npz'})")
     assert f"segments: {len(line_map)} (total" in out and f"clusters: {len(line_map.clusters)} (" in out
+    kind = line_map.metadata["profile"]["kind"]
+    assert f"  cloud: {kind}, " in out and "density spread" in out  # the cloud's profile in words
 
 
 def test_localize_writes_json_tum_and_overlays(scene, files, capsys, tmp_path):

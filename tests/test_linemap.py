@@ -154,7 +154,9 @@ def test_build_from_points(rng):
     points = np.concatenate([wall_a, wall_b, floor]) + rng.normal(0, 0.002, (3 * n, 3))
     stages = []
     line_map = LineMap.build(points, name="corner", progress=stages.append)
-    assert stages == ["profile", "normals", "regions", "lines", "clusters"]
+    # even and dense (drawn at random: its nearest neighbours spread, its density does not): a room's cloud
+    assert line_map.metadata["profile"]["kind"] == "rgbd"
+    assert stages == ["profile", "normals", "regions", "lines", "point edges", "clusters"]
     assert len(line_map) >= 6 and len(line_map.clusters) == 3
     assert line_map.metadata["point_count"] == 3 * n and line_map.metadata["extraction"]["voxel_m"] > 0
 

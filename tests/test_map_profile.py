@@ -3,7 +3,7 @@ import pytest
 
 from linereg.config import Lines3DConfig, MapProfileConfig
 from linereg.errors import InvalidInputError
-from linereg.map.profile import lines3d_config_for, point_spacing_m
+from linereg.map.profile import lines3d_config_for, point_spacing_m, profile_cloud
 
 
 def grid_points(spacing_m: float, size_m: float = 1.0) -> np.ndarray:
@@ -41,3 +41,24 @@ def test_profile_follows_its_config():
 def test_bad_input():
     with pytest.raises(InvalidInputError):
         lines3d_config_for(np.zeros((4, 2)))
+
+
+def test_a_cloud_thinned_at_random_is_even_and_a_scanners_falls_off_with_range():
+    rng = np.random.default_rng(0)
+    # a room's floor and two walls, points drawn at random with the same density everywhere (a fused
+    # cloud thinned to a few percent): its nearest neighbours alone spread as a scanner's do
+    floor = np.c_[rng.uniform(0, 4, 6000), rng.uniform(0, 3, 6000), np.zeros(6000)]
+    wall = np.c_[rng.uniform(0, 4, 5000), np.zeros(5000), rng.uniform(0, 2.5, 5000)]
+    side = np.c_[np.zeros(4000), rng.uniform(0, 3, 4000), rng.uniform(0, 2.5, 4000)]
+    room = np.r_[floor, wall, side]
+    profile = profile_cloud(room)
+    nearest_spread = profile.spacing_p90_m / profile.spacing_p10_m
+    assert nearest_spread > MapProfileConfig().uneven_ratio  # the test a density spread replaced
+    assert profile.density_spread < 2.5 and profile.kind in ("rgbd", "map")
+    # the ground round a scanner (placed far from the frame's origin, so no rings are looked for about
+    # it): as many points per metre of range near it as far away, the density falling as 1 / r^2
+    r = np.exp(rng.uniform(np.log(1.0), np.log(30.0), 20000))
+    azimuth = rng.uniform(0, 2 * np.pi, 20000)
+    ground = np.c_[50 + r * np.cos(azimuth), 50 + r * np.sin(azimuth), rng.normal(0, 0.002, 20000)]
+    scanned = profile_cloud(ground)
+    assert scanned.density_spread > 5 and scanned.kind == "scan"

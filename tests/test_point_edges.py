@@ -157,3 +157,41 @@ def test_degenerate_input_gives_no_edges():
     # a single line of points: every direction, no crash
     found = point_edges(line, AXES, SPACING, NOISE, 0.15, PointEdgesConfig())
     assert found.shape[1] == 6
+
+
+def scattered(origin, u, v, per_m2, rng):
+    """Returns points drawn at random, ``per_m2`` to a square metre, on the parallelogram origin + a u + b v."""
+    origin, u, v = (np.asarray(x, dtype=float) for x in (origin, u, v))
+    n = int(per_m2 * np.linalg.norm(np.cross(u, v)))
+    a, b = rng.random((2, n, 1))
+    return origin + a * u + b * v
+
+
+def test_a_room_sampled_at_random_is_an_rgbd_fusion_with_point_edges():
+    # points drawn at random (a cloud thinned, or fused without a grid): their nearest neighbours' distances
+    # spread as a scanner's do (by range); the density does not, and the room is profiled as the RGB-D cloud
+    # it is, with its point edges
+    rng = np.random.default_rng(4)
+    lo, hi = np.array(SLAB[0]), np.array(SLAB[1])
+    size = hi - lo
+    parts = [
+        scattered([0, 0, 0], [2, 0, 0], [0, 2, 0], 1200, rng),
+        scattered([0, 2, 0], [2, 0, 0], [0, 0, 1.5], 1200, rng),
+    ]
+    for k in range(3):
+        i, j = [m for m in range(3) if m != k]
+        for at in (lo[k], hi[k]):
+            origin = lo.copy()
+            origin[k] = at
+            parts.append(scattered(origin, AXES[i] * size[i], AXES[j] * size[j], 1200, rng))
+    points = np.concatenate(parts)
+    points = points + rng.normal(0.0, NOISE, points.shape) - [1.3, 0.7, 1.5]  # off the origin, as above
+    content = extract_map(points)
+    assert content.profile.spacing_p90_m > 4 * content.profile.spacing_p10_m
+    assert content.profile.kind == "rgbd"
+    edges = content.segments[content.kinds == kinds.POINT_EDGE] + np.tile([1.3, 0.7, 1.5], 2)
+    assert len(edges)
+    # the slab's edges (a table top 4 cm thick: its faces, three spacings apart, also give some lines
+    # across them where a point's neighbours reach the other face)
+    along = [found_along(edges, truth, tol_m=0.03) for truth in box_edges(*SLAB, 0.15)]
+    assert sum(a >= 0.5 for a in along) >= 3, along

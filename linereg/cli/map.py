@@ -13,6 +13,7 @@ import json
 import time
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -121,11 +122,35 @@ def run_info(args: argparse.Namespace) -> int:
     lo, hi = summary["bounds"]
     print(f"  bounds: min ({', '.join(f'{v:.3f}' for v in lo)})  max ({', '.join(f'{v:.3f}' for v in hi)})")
     print(f"  tiles: {summary['num_tiles']} of {summary['tile_m']:.1f} m")
+    if isinstance(summary.get("profile"), dict):
+        print("  cloud: " + _profile_line(summary["profile"]))
     skip = {"name", "format_version", "num_segments", "total_length_m", "clusters", "unclustered", "bounds"}
-    skip |= {"num_tiles", "tile_m", "extraction"}
+    skip |= {"num_tiles", "tile_m", "extraction", "profile"}
     for key, value in summary.items():
         if key not in skip:
             print(f"  {key}: {value}")
     if summary.get("extraction"):
         print("  extraction: " + ", ".join(f"{k}={v}" for k, v in summary["extraction"].items()))
     return 0
+
+
+def _profile_line(profile: dict[str, Any]) -> str:
+    """Returns a map's cloud profile (``map.profile.CloudProfile.as_dict``) in words; keys a map file of an
+    older version lacks are left out."""
+    words = [f"{profile.get('kind', '?')}, {profile.get('num_points', 0):,} points"]
+    if profile.get("spacing_m"):
+        spacing = f"spacing {100 * profile['spacing_m']:.1f} cm"
+        if "spacing_p10_m" in profile and "spacing_p90_m" in profile:
+            spacing += (
+                f" (10-90 %: {100 * profile['spacing_p10_m']:.1f}-{100 * profile['spacing_p90_m']:.1f} cm)"
+            )
+        words.append(spacing)
+    if "density_spread" in profile:
+        words.append(f"density spread {profile['density_spread']:.1f}")
+    if "noise_m" in profile:
+        words.append(f"noise {1000 * profile['noise_m']:.1f} mm")
+    if profile.get("rings"):
+        words.append(f"{profile['rings']} rings {profile.get('ring_gap_deg', 0.0):.2f} deg apart")
+    if profile.get("sensor_origin") is not None:
+        words.append("sensor at (" + ", ".join(f"{v:.2f}" for v in profile["sensor_origin"]) + ")")
+    return ", ".join(words)
