@@ -38,8 +38,8 @@ class CloudProfile:
     neighbour: 1.2-2 on RGB-D fusions, voxelised maps and such clouds thinned at random, 2.3-2.5 on the
     demo's four-station scan thinned to 10^6 points, 3.6 on a merged solid-state LiDAR courtyard, 4-16 on
     single sweeps), noise rms (m), rings (0: none) and the median angle between neighbouring rings (deg),
-    how the rings were found ("scan order", "elevation" or ""), the sensor origin (given, or where the lasers'
-    cones are sharpest when the rings were found by elevation; None: unknown)."""
+    how the rings were found ("scan order", "elevation" or ""), the sensor origin (given, or where the
+    lasers' cones are sharpest when the rings were found by elevation; None: unknown)."""
 
     kind: str
     num_points: int
@@ -289,19 +289,10 @@ def profile_and_rings(
     else:
         kind = "rgbd" if spacing <= config.dense_spacing_m else "map"
     known = rings > 0 or sensor_origin is not None
-    origin_out = tuple(float(v) for v in (found if rings else origin)) if known else None
+    at = found if rings else origin
+    origin_out = (float(at[0]), float(at[1]), float(at[2])) if known else None
     profile = CloudProfile(
-        kind,
-        len(points),
-        spacing,
-        p10,
-        p90,
-        spread,
-        noise,
-        rings,
-        gap,
-        source,
-        origin_out,  # type: ignore[arg-type]
+        kind, len(points), spacing, p10, p90, spread, noise, rings, gap, source, origin_out
     )
     return profile, ring
 
