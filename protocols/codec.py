@@ -232,8 +232,9 @@ def decode_prior(d: dict | None) -> Prior | None:
     gravity, gravity_sigma = None, 5.0
     if "gravity" in d:
         gravity = _three(d, "gravity", "prior.gravity (camera frame)")
-        if not np.linalg.norm(gravity) > 0:
+        if not np.abs(gravity).max() > 0:
             raise ProtocolError("bad_request", "prior.gravity must not be zero")
+        gravity = gravity / np.abs(gravity).max()  # then its norm neither overflows nor underflows
         gravity = gravity / np.linalg.norm(gravity)
         gravity_sigma = number(d, "gravity_sigma_deg", "prior.gravity_sigma_deg", positive=True)
     if "position" in d:

@@ -162,3 +162,21 @@ def test_library_priors_cross_the_wire_unchanged():
         assert back.gravity_sigma_deg == prior.gravity_sigma_deg
     with pytest.raises(InvalidInputError, match="world_down"):
         wire_prior(Prior(gravity=gravity, world_down=np.array([0.0, -1.0, 0.0])))
+
+
+@pytest.mark.parametrize("scale", [1e-300, 1e200])
+def test_a_gravity_of_any_magnitude_is_a_direction(scale):
+    """A direction given as huge or tiny numbers: its norm would overflow to inf (the vector then divided to
+    zero) or underflow to 0 (refused); scaled by its largest component first, it is the direction it says."""
+    from protocols import ProtocolError
+    from protocols.codec import decode_prior
+
+    want = np.array([0.0, 0.6, 0.8])
+    np.testing.assert_allclose(Prior(gravity=want * scale).gravity, want, atol=1e-15)
+    np.testing.assert_allclose(
+        decode_prior({"gravity": (want * scale).tolist(), "gravity_sigma_deg": 3.0}).gravity, want, atol=1e-15
+    )
+    with pytest.raises(InvalidInputError, match="not all zero"):
+        Prior(gravity=np.zeros(3))
+    with pytest.raises(ProtocolError, match="must not be zero"):
+        decode_prior({"gravity": [0.0, 0.0, 0.0]})
