@@ -78,6 +78,11 @@ class Registration:
         }
 
 
+# coordinates farther out than this (pixels or metres) are no image's and no map's: Earth-centred metres
+# are 6.4e6, and squares of 1e9 stay far from overflow, which 1e200 (a mistyped unit or a bad cast) does not
+MAX_COORDINATE = 1e9
+
+
 def check_segments(array: object, name: str, width: int, min_count: int = 0) -> np.ndarray:
     """Returns ``array`` as (N, width) float64, or raises InvalidInputError naming ``name``."""
     try:
@@ -88,6 +93,9 @@ def check_segments(array: object, name: str, width: int, min_count: int = 0) -> 
         raise InvalidInputError(f"{name} must have shape (N, {width}), got {a.shape}")
     if not np.isfinite(a).all():
         raise InvalidInputError(f"{name} contains NaN or inf (row {int(np.argwhere(~np.isfinite(a))[0, 0])})")
+    if len(a) and (far := np.abs(a) > MAX_COORDINATE).any():
+        row = int(np.argwhere(far)[0, 0])
+        raise InvalidInputError(f"{name} has a coordinate beyond +-{MAX_COORDINATE:g} (row {row})")
     if len(a) < min_count:
         raise InvalidInputError(f"{name} has {len(a)} segments; at least {min_count} are needed")
     d = width // 2

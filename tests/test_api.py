@@ -35,6 +35,17 @@ def test_camera_from_dict_names_missing_keys():
             "lines2d.*at least",
         ),
         ("not an array", np.ones((10, 6)), "lines2d"),
+        # a unit gone wrong: squares of it overflow (the map's corner search crashed in scipy)
+        (
+            np.random.default_rng(0).random((10, 4)),
+            np.r_[np.random.default_rng(0).random((9, 6)), [[1e200, 0, 0, 2e200, 0, 0]]],
+            r"lines3d.*beyond.*\(row 9\)",
+        ),
+        (
+            np.r_[np.random.default_rng(0).random((9, 4)), [[0, 0, 1e12, 5]]],
+            np.random.default_rng(0).random((10, 6)),
+            r"lines2d.*beyond.*\(row 9\)",
+        ),
     ],
 )
 def test_register_rejects_malformed_input(camera, lines2d, lines3d, match):

@@ -41,6 +41,8 @@ def test_profile_follows_its_config():
 def test_bad_input():
     with pytest.raises(InvalidInputError):
         lines3d_config_for(np.zeros((4, 2)))
+    with pytest.raises(InvalidInputError, match=r"beyond.*\(point 3\)"):  # a unit gone wrong
+        lines3d_config_for(np.r_[grid_points(0.1), [[1e300, 0.0, 0.0]]][-4:])
 
 
 def test_a_cloud_thinned_at_random_is_even_and_a_scanners_falls_off_with_range():
