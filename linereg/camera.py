@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InvalidInputError
+from .errors import MAX_COORDINATE, InvalidInputError
 
 
 @dataclass(frozen=True)
@@ -29,14 +29,14 @@ class Camera:
     def __post_init__(self) -> None:
         for name in ("fx", "fy", "cx", "cy"):
             value = getattr(self, name)
-            if not isinstance(value, int | float) or not math.isfinite(value):
-                raise InvalidInputError(f"camera {name} must be a finite number, got {value!r}")
+            if not isinstance(value, int | float) or not math.isfinite(value) or abs(value) > MAX_COORDINATE:
+                raise InvalidInputError(f"camera {name} must be a finite number of pixels, got {value!r}")
         if self.fx <= 0 or self.fy <= 0:
             raise InvalidInputError(f"camera focal length must be positive, got fx={self.fx}, fy={self.fy}")
         for name in ("width", "height"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | np.integer) or value <= 0:
-                raise InvalidInputError(f"camera {name} must be a positive integer, got {value!r}")
+            if isinstance(value, bool) or not isinstance(value, int | np.integer) or not 0 < value <= 10**6:
+                raise InvalidInputError(f"camera {name} must be a positive integer of pixels, got {value!r}")
         dist = tuple(float(d) for d in self.dist)
         if len(dist) not in (0, 4, 5, 8) or not all(math.isfinite(d) for d in dist):
             raise InvalidInputError(f"camera dist must hold 4, 5 or 8 finite OpenCV coefficients, got {dist}")

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import InvalidInputError
+from .errors import MAX_COORDINATE, InvalidInputError
 from .geometry import camera_center, check_rigid, rotation_error_deg
 
 
@@ -52,8 +52,10 @@ class Prior:
             raise InvalidInputError("prior sigma_rot_deg needs cam_from_world (a rotation to be near)")
         if self.position is not None:
             p = np.asarray(self.position, dtype=np.float64).reshape(-1)
-            if p.shape != (3,) or not np.isfinite(p).all():
-                raise InvalidInputError("prior position must be 3 finite numbers")
+            if p.shape != (3,) or not np.isfinite(p).all() or np.abs(p).max() > MAX_COORDINATE:
+                raise InvalidInputError(
+                    f"prior position must be 3 finite numbers within +-{MAX_COORDINATE:g} m"
+                )
             object.__setattr__(self, "position", p)
             if self.radius_m is None:
                 raise InvalidInputError("prior position needs radius_m (or cam_from_world with sigma_pos_m)")

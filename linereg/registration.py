@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import InvalidInputError
+from .errors import MAX_COORDINATE, InvalidInputError
 
 
 @dataclass(frozen=True)
@@ -76,11 +76,6 @@ class Registration:
             ],
             "timings": dict(self.timings),
         }
-
-
-# coordinates farther out than this (pixels or metres) are no image's and no map's: Earth-centred metres
-# are 6.4e6, and squares of 1e9 stay far from overflow, which 1e200 (a mistyped unit or a bad cast) does not
-MAX_COORDINATE = 1e9
 
 
 def check_segments(array: object, name: str, width: int, min_count: int = 0) -> np.ndarray:

@@ -53,6 +53,19 @@ def test_register_rejects_malformed_input(camera, lines2d, lines3d, match):
         linereg.register(lines2d, lines3d, camera)
 
 
+@pytest.mark.parametrize(
+    ("make", "match"),
+    [
+        (lambda: linereg.Camera(fx=1e200, fy=1e200, cx=320, cy=240, width=640, height=480), "fx"),
+        (lambda: linereg.Camera(fx=800, fy=800, cx=320, cy=240, width=10**12, height=480), "width"),
+        (lambda: linereg.Prior(position=(1e200, 0.0, 0.0), radius_m=30.0), "prior position"),
+    ],
+)
+def test_numbers_no_camera_or_place_can_have_are_refused_by_name(make, match):
+    with pytest.raises(linereg.InvalidInputError, match=match):
+        make()
+
+
 def test_register_rejects_a_non_camera():
     rng = np.random.default_rng(0)
     with pytest.raises(linereg.InvalidInputError, match="camera"):

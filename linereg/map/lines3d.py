@@ -20,8 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
-from ..errors import InvalidInputError
-from ..registration import MAX_COORDINATE
+from ..errors import MAX_COORDINATE, InvalidInputError
 from ..threads import thread_count
 from . import kinds
 from .collinear import drop_near, merge_collinear
