@@ -12,6 +12,7 @@ import msgpack
 import numpy as np
 
 from linereg.camera import Camera
+from linereg.errors import MAX_COORDINATE
 
 from .arrays import decode_array, encode_array
 from .errors import ProtocolError
@@ -219,6 +220,8 @@ def _decode_segments(obj: object, camera: Camera, limits: Limits) -> np.ndarray 
     lines = lines.astype(np.float64)
     if not np.isfinite(lines).all():
         raise ProtocolError("bad_request", "segments contain NaN or inf")
+    if len(lines) and np.abs(lines).max() > MAX_COORDINATE:
+        raise ProtocolError("bad_request", f"segments hold a coordinate beyond +-{MAX_COORDINATE:g} px")
     if (np.linalg.norm(lines[:, 2:] - lines[:, :2], axis=1) == 0).any():
         raise ProtocolError("bad_request", "segments contain zero-length segments")
     return lines

@@ -102,6 +102,11 @@ def _request(**overrides) -> dict:
             "bad_request",
         ),
         ({"segments": {"dtype": "float64", "shape": [1, 4], "data": np.zeros(4).tobytes()}}, "bad_request"),
+        (
+            {"segments": {"dtype": "float64", "shape": [1, 4], "data": np.array([0, 0, 1e200, 1]).tobytes()}},
+            "bad_request",
+        ),
+        ({"prior": {"gravity": [0.0, 0.0, 0.0], "gravity_sigma_deg": 3.0}}, "bad_request"),
         ({"segments": {"dtype": "float64", "shape": [10**9, 4], "data": b""}}, "too_large"),
         ({"segments": {"dtype": "int8", "shape": [1, 4], "data": b"1234"}}, "bad_request"),
         ({"image": {"format": "png", "data": b"\x89PNG"}}, "bad_request"),  # both image and segments
