@@ -13,6 +13,8 @@ import numpy as np
 
 from .errors import MAX_COORDINATE, InvalidInputError
 
+MAX_IMAGE_SIDE = 10**6  # pixels: beyond any sensor or stitched panorama
+
 
 @dataclass(frozen=True)
 class Camera:
@@ -35,7 +37,11 @@ class Camera:
             raise InvalidInputError(f"camera focal length must be positive, got fx={self.fx}, fy={self.fy}")
         for name in ("width", "height"):
             value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int | np.integer) or not 0 < value <= 10**6:
+            if (
+                isinstance(value, bool)
+                or not isinstance(value, int | np.integer)
+                or not 0 < value <= MAX_IMAGE_SIDE
+            ):
                 raise InvalidInputError(f"camera {name} must be a positive integer of pixels, got {value!r}")
         dist = tuple(float(d) for d in self.dist)
         if len(dist) not in (0, 4, 5, 8) or not all(math.isfinite(d) for d in dist):

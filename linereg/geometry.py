@@ -138,6 +138,13 @@ def pixels_to_rays(camera: Camera, pixels: np.ndarray) -> np.ndarray:
     return rays
 
 
+def unit_vector(v: np.ndarray) -> np.ndarray:
+    """Returns the (3,) finite, non-zero vector ``v`` scaled to unit length: by its largest component first,
+    so that a vector of 1e200s or 1e-200s is a direction too (its norm would overflow or underflow)."""
+    v = v / np.abs(v).max()
+    return v / np.linalg.norm(v)
+
+
 def interpretation_normals(lines2d: np.ndarray, camera: Camera) -> np.ndarray:
     """Returns (N, 3) unit normals (camera frame) of the planes through the camera centre and each segment.
 

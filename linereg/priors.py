@@ -15,7 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .errors import MAX_COORDINATE, InvalidInputError
-from .geometry import camera_center, check_rigid, rotation_error_deg
+from .geometry import camera_center, check_rigid, rotation_error_deg, unit_vector
 
 
 @dataclass(frozen=True)
@@ -138,13 +138,11 @@ PRIOR_KEYS = frozenset(
 
 
 def _unit3(value: object, name: str) -> np.ndarray:
-    """Returns ``value`` as a (3,) unit vector: scaled by its largest component first, so that a vector of
-    1e200s or 1e-200s is a direction too (its norm would overflow to inf or underflow to 0)."""
+    """Returns ``value`` as a (3,) unit vector (``geometry.unit_vector``)."""
     v = np.asarray(value, dtype=np.float64).reshape(-1)
     if v.shape != (3,) or not np.isfinite(v).all() or not np.abs(v).max() > 0:
         raise InvalidInputError(f"prior {name} must be 3 finite numbers, not all zero")
-    v = v / np.abs(v).max()
-    return v / np.linalg.norm(v)
+    return unit_vector(v)
 
 
 def admits(prior: Prior | None, R: np.ndarray) -> bool:

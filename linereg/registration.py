@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import MAX_COORDINATE, InvalidInputError
+from .errors import MAX_COORDINATE, InvalidInputError, beyond_bound
 
 
 @dataclass(frozen=True)
@@ -88,8 +88,7 @@ def check_segments(array: object, name: str, width: int, min_count: int = 0) -> 
         raise InvalidInputError(f"{name} must have shape (N, {width}), got {a.shape}")
     if not np.isfinite(a).all():
         raise InvalidInputError(f"{name} contains NaN or inf (row {int(np.argwhere(~np.isfinite(a))[0, 0])})")
-    if len(a) and (far := np.abs(a) > MAX_COORDINATE).any():
-        row = int(np.argwhere(far)[0, 0])
+    if (row := beyond_bound(a)) is not None:
         raise InvalidInputError(f"{name} has a coordinate beyond +-{MAX_COORDINATE:g} (row {row})")
     if len(a) < min_count:
         raise InvalidInputError(f"{name} has {len(a)} segments; at least {min_count} are needed")

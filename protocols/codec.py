@@ -12,7 +12,8 @@ import msgpack
 import numpy as np
 
 from linereg.camera import Camera
-from linereg.errors import MAX_COORDINATE
+from linereg.errors import MAX_COORDINATE, beyond_bound
+from linereg.geometry import unit_vector
 
 from .arrays import decode_array, encode_array
 from .errors import ProtocolError
@@ -220,7 +221,7 @@ def _decode_segments(obj: object, camera: Camera, limits: Limits) -> np.ndarray 
     lines = lines.astype(np.float64)
     if not np.isfinite(lines).all():
         raise ProtocolError("bad_request", "segments contain NaN or inf")
-    if len(lines) and np.abs(lines).max() > MAX_COORDINATE:
+    if beyond_bound(lines) is not None:
         raise ProtocolError("bad_request", f"segments hold a coordinate beyond +-{MAX_COORDINATE:g} px")
     if (np.linalg.norm(lines[:, 2:] - lines[:, :2], axis=1) == 0).any():
         raise ProtocolError("bad_request", "segments contain zero-length segments")
@@ -237,8 +238,7 @@ def decode_prior(d: dict | None) -> Prior | None:
         gravity = _three(d, "gravity", "prior.gravity (camera frame)")
         if not np.abs(gravity).max() > 0:
             raise ProtocolError("bad_request", "prior.gravity must not be zero")
-        gravity = gravity / np.abs(gravity).max()  # then its norm neither overflows nor underflows
-        gravity = gravity / np.linalg.norm(gravity)
+        gravity = unit_vector(gravity)
         gravity_sigma = number(d, "gravity_sigma_deg", "prior.gravity_sigma_deg", positive=True)
     if "position" in d:
         pos = _three(d, "position", "prior.position (world metres)")

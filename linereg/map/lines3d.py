@@ -20,7 +20,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from ..config import Lines3DConfig
-from ..errors import MAX_COORDINATE, InvalidInputError
+from ..errors import MAX_COORDINATE, InvalidInputError, beyond_bound
 from ..threads import thread_count
 from . import kinds
 from .collinear import drop_near, merge_collinear
@@ -131,10 +131,8 @@ def check_points(points: object) -> np.ndarray:
         raise InvalidInputError(f"points must have shape (P, 3), got {arr.shape}")
     if not np.isfinite(arr).all():
         raise InvalidInputError("points must be finite (no NaN or inf)")
-    if len(arr) and (far := np.abs(arr) > MAX_COORDINATE).any():
-        raise InvalidInputError(
-            f"points have a coordinate beyond +-{MAX_COORDINATE:g} m (point {int(np.argwhere(far)[0, 0])})"
-        )
+    if (row := beyond_bound(arr)) is not None:
+        raise InvalidInputError(f"points have a coordinate beyond +-{MAX_COORDINATE:g} m (point {row})")
     return arr
 
 
