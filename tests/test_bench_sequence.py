@@ -28,8 +28,11 @@ def test_the_seeds_table_sums_each_rows_wrong_claims_and_frames_within(capsys):
             (0.1, 0.06),
         ),
     ]
+    walks[0]["rows"]["per-frame"]["covariance"] = {"claims": 160, "beyond_3sigma": 3, "nees_median": 4.0}
+    walks[1]["rows"]["per-frame"]["covariance"] = {"claims": 150, "beyond_3sigma": 1, "nees_median": 6.0}
     sequence._print_seeds([0, 2], walks)
-    header, _, _, tracking, reach, global_, ratios = capsys.readouterr().out.strip().splitlines()
+    header, _, _, tracking, reach, global_, beyond, ratios = capsys.readouterr().out.strip().splitlines()
+    assert beyond.endswith("all walks: per-frame 4/310")  # rows without the check are left out
     assert "seeds 0 2" in header
     assert tracking.endswith("all:    2 /  480 of 640")
     assert reach.endswith("all:  111 /  120 of 640")

@@ -216,6 +216,10 @@ def test_bench_demo_with_a_rough_prior(scene, capsys, tmp_path, monkeypatch):
     assert results["options"]["prior"] == {"rotation_deg": 5.0, "position_m": 0.5}
     assert len(results["seeds"][0]["images"]) == NUM_IMAGES
     assert results["summary"]["stats"]["wrong_claimed"] == 0 and "localized:" in out
+    # every claim's error measured in its reported sigmas (``bench/honesty.py``)
+    claims = [r for r in results["seeds"][0]["images"] if r["reported"]]
+    assert results["summary"]["covariance"]["claims"] == len(claims) and "covariance:" in out
+    assert all(r["nees"] >= 0 for r in claims)
     code, _, err = run(capsys, *argv, "--prior", -1, 0.5)
     assert_user_error(code, err, "--prior")
 

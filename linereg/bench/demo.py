@@ -24,7 +24,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bench import report, search_check
+from ..bench import honesty, report, search_check
 
 STAGES = ("lines2d", "culling", "vanishing", "rotation", "translation", "refine", "total")
 TARGETS = {"success_rate": 1.0, "rotation_deg_median": 0.5, "position_m_median": 0.2, "whole_s": 60.0}
@@ -59,6 +59,8 @@ def localize_image(
     )
     stages = {name: 1e3 * s for name, s in result.timings.items()}
     record |= {"image": k, "ambiguity": result.ambiguity, "stages_ms": stages}
+    if result.success:  # how many of its own sigmas the claim is off (``honesty``)
+        record["nees"] = honesty.nees(result.cam_from_world, truth, result.covariance)
     if result.cam_from_world is not None:  # outside the timing: the truth refined, for the search check
         config = config or RegisterConfig()
         lines2d = detect(image, camera)
@@ -150,6 +152,7 @@ def summarize(seeds: list[dict[str, Any]]) -> dict[str, Any]:
         "stats": stats,
         "failure_reasons": report.failure_reasons(records),
         "search_check": search_check.tally(records),
+        "covariance": honesty.summary(r["nees"] for r in records if "nees" in r),
         "targets_met": verdict,
     }
 
@@ -203,6 +206,7 @@ def print_results(results: dict[str, Any]) -> None:
     for name, value, target, ok in lines:
         print(f"{name:>15}: {value:>12}  target {target:<11} {'met' if ok else 'NOT met'}")
     print(search_check.summary_line(results["summary"]["search_check"]))
+    print(honesty.summary_line(results["summary"]["covariance"]))
     if results["summary"]["failure_reasons"]:
         print(f"failures: {results['summary']['failure_reasons']}")
 

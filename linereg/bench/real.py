@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..bench import report, search_check
+from ..bench import honesty, report, search_check
 
 DATA_ENV = "LINEREG_DATA"
 
@@ -172,6 +172,8 @@ def localize_one(
     }
     if result.success and not record["success"]:
         record["reason"] = f"pose off by {rot:.1f} deg / {pos:.2f} m"
+    if result.success:  # how many of its own sigmas the claim is off (``honesty``)
+        record["nees"] = honesty.nees(result.cam_from_world, item.cam_from_world, result.covariance)
     if result.cam_from_world is not None:
         from ..config import RegisterConfig
         from ..localization import map_view
@@ -418,6 +420,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"localized {done}/{len(records)} within {bounds[0]:g} deg / {bounds[1]:g} m of the ground truth")
     print(f"wrong but claimed: {wrong}/{len(records)} (reported as success, outside those bounds)")
     print(search_check.summary_line(search_check.tally(records)))
+    covariance = honesty.summary(r["nees"] for r in records if "nees" in r)
+    print(honesty.summary_line(covariance))
     results = {
         "benchmark": "real",
         "data": str(data),
@@ -426,6 +430,7 @@ def run(args: argparse.Namespace) -> int:
         "map_config": args.map_config,
         "intensity_edges": args.intensity_edges,
         "prior": None if prior is None else {"rotation_deg": prior[0], "position_m": prior[1]},
+        "covariance": covariance,
         "scenes": scenes,
     }
     path = report.write_json_atomic(args.out / "results.json", results)

@@ -33,6 +33,7 @@ from typing import Any
 
 import numpy as np
 
+from ..bench import honesty
 from ..bench.real import default_data_dir
 
 
@@ -261,7 +262,17 @@ def _row_of(results: list, truth: np.ndarray, args: argparse.Namespace) -> dict[
     poses = np.array([r.cam_from_world for r in results])
     success = np.array([r.success for r in results])
     posed = success | np.array([r.reason.startswith(FROM_NEIGHBOURS) for r in results])
-    return _row(poses, posed, success, truth, args)
+    return _row(poses, posed, success, truth, args) | _covariance(results, truth)
+
+
+def _covariance(results: list, truth: np.ndarray) -> dict[str, Any]:
+    """Returns {"covariance": ``honesty.summary``} of the claims (success) among a row's Registrations."""
+    values = [
+        honesty.nees(r.cam_from_world, T, r.covariance)
+        for r, T in zip(results, truth, strict=True)
+        if r.success
+    ]
+    return {"covariance": honesty.summary(values)}
 
 
 def _row(
@@ -302,7 +313,9 @@ def _at_truth(
     ]
     poses = np.array([r.cam_from_world for r in results])
     fitted = np.array([np.isfinite(r.rms_px) for r in results])
-    return _row(poses, fitted, np.array([r.success for r in results]), truth, args)
+    return _row(poses, fitted, np.array([r.success for r in results]), truth, args) | _covariance(
+        results, truth
+    )
 
 
 def _track(
@@ -479,6 +492,14 @@ def _print_seeds(seeds: list[int], results: list[dict[str, Any]]) -> None:
         per = "  ".join(f"{c['wrong']:3d} / {w:3d}" for c, w in zip(cells, within, strict=True))
         wrong = sum(c["wrong"] for c in cells)
         print(f"{row_name:<14} {per}   all: {wrong:4d} / {sum(within):4d} of {sum(counts)}")
+    beyond = []  # claims whose error lies beyond their reported 3 sigma (``honesty``), summed over the walks
+    for row_name in results[0]["rows"]:
+        known = [r["rows"][row_name]["covariance"] for r in results if "covariance" in r["rows"][row_name]]
+        if known:
+            out, claims = sum(c["beyond_3sigma"] for c in known), sum(c["claims"] for c in known)
+            beyond.append(f"{row_name} {out}/{claims}")
+    if beyond:
+        print(f"claims beyond their reported 3 sigma (NEES), all walks: {', '.join(beyond)}")
     ratios = [r["rows"]["smoothed"]["ate_m_same_frames"] / r["rows"]["per-frame"]["ate_m"] for r in results]
     print(f"smoothed ATE / per-frame ATE on the per-frame frames: {'  '.join(f'{x:.2f}' for x in ratios)}")
 
@@ -486,18 +507,31 @@ def _print_seeds(seeds: list[int], results: list[dict[str, Any]]) -> None:
 def _print(name: str, rows: dict[str, Any], global_start: dict[str, Any]) -> None:
     print(f"\n{name}")
     print(
-        f"{'row':<14} {'posed':>6} {'success':>7} {'wrong':>5} {'within':>6} {'ATE m':>7} {'ATE deg':>7} {'RPE m':>7} {'RPE deg':>7}"
+        f"{'row':<14} {'posed':>6} {'success':>7} {'wrong':>5} {'within':>6} {'ATE m':>7} {'ATE deg':>7} {'RPE m':>7} {'RPE deg':>7} {'>3 sigma':>9}"
     )
     for row_name, r in rows.items():
+        c = r.get("covariance")  # claims whose error lies beyond their reported 3 sigma (``honesty``)
+        beyond = f"{c['beyond_3sigma']}/{c['claims']}" if c else "-"
         print(
-            f"{row_name:<14} {r['posed']:6.1%} {r['success']:7.1%} {r['wrong']:5d} {r['within']:6.1%} {r['ate_m']:7.3f} {r['ate_deg']:7.2f} {r['rpe_m']:7.3f} {r['rpe_deg']:7.2f}"
+            f"{row_name:<14} {r['posed']:6.1%} {r['success']:7.1%} {r['wrong']:5d} {r['within']:6.1%} {r['ate_m']:7.3f} {r['ate_deg']:7.2f} {r['rpe_m']:7.3f} {r['rpe_deg']:7.2f} {beyond:>9}"
         )
     for row_name, r in rows.items():
         extra = {
             k: v
             for k, v in r.items()
             if k
-            not in ("posed", "success", "wrong", "within", "ate_m", "ate_deg", "rpe_m", "rpe_deg", "frames")
+            not in (
+                "posed",
+                "success",
+                "wrong",
+                "within",
+                "ate_m",
+                "ate_deg",
+                "rpe_m",
+                "rpe_deg",
+                "frames",
+                "covariance",
+            )
         }
         if extra:
             print(f"  {row_name}: {json.dumps(extra)}")
