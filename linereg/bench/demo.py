@@ -165,6 +165,7 @@ IMAGE_COLUMNS = (
     ("position_m", "pos m", ".3f"),
     ("num_inliers", "inliers", "d"),
     ("ambiguity", "ambig", ".2f"),
+    ("nees", "NEES", ".1f"),  # a claim's error in its own sigmas (``honesty``)
     ("time_ms", "ms", ".0f"),
     ("reason", "reason", ""),
 )

@@ -327,6 +327,7 @@ IMAGE_COLUMNS = (
     ("num_lines2d", "2D lines", "d"),
     ("gt_inliers", "GT inl", "d"),
     ("num_inliers", "inliers", "d"),
+    ("nees", "NEES", ".1f"),  # a claim's error in its own sigmas (``honesty``)
     ("time_ms", "ms", ".0f"),
     ("reason", "reason", ""),
 )
