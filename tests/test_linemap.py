@@ -161,6 +161,32 @@ def test_build_from_points(rng):
     assert line_map.metadata["point_count"] == 3 * n and line_map.metadata["extraction"]["voxel_m"] > 0
 
 
+def test_a_cloud_of_repeated_points_builds_the_map_of_its_distinct_points(rng):
+    """An export that repeats its points (each 3 times in a row, or the whole cloud 10 times over) had a
+    spacing of 0: no scale to build by (10 copies of a room gave no line). The copies are dropped, the first
+    of each kept in the cloud's order: the map is the distinct points' own, bit for bit, and says so."""
+    n = 6000
+    wall = np.c_[rng.uniform(0, 3, n), np.zeros(n), rng.uniform(0, 2.5, n)]
+    floor = np.c_[rng.uniform(0, 3, n), rng.uniform(0, 3, n), np.zeros(n)]
+    points = np.concatenate([wall, floor])
+    base = LineMap.build(points)
+    assert len(base) >= 4 and "repeated_points" not in base.metadata
+    for copies in (np.repeat(points, 3, axis=0), np.tile(points, (10, 1))):
+        line_map = LineMap.build(copies)
+        np.testing.assert_array_equal(line_map.segments, base.segments)
+        assert line_map.metadata["repeated_points"] == len(copies) - len(points)
+        assert line_map.metadata["point_count"] == len(points)
+        assert line_map.metadata["profile"]["spacing_m"] == base.metadata["profile"]["spacing_m"] > 0
+
+
+def test_distinct_points_keeps_the_first_of_each_in_order():
+    from linereg.map.build import distinct_points
+
+    points = np.array([[1.0, 2, 3], [0.0, 0, 0], [1.0, 2, 3], [-0.0, 0, 0], [5.0, 5, 5], [0.0, 0, 0]])
+    assert distinct_points(points).tolist() == [0, 1, 4]
+    assert distinct_points(np.zeros((0, 3))).tolist() == []
+
+
 def test_empty_and_bad_segments(tmp_path):
     empty = LineMap.from_segments(np.zeros((0, 6)))
     assert len(empty) == 0 and len(empty.segments_near([0, 0, 0], 10.0)) == 0

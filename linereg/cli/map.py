@@ -98,9 +98,11 @@ def run_build(args: argparse.Namespace) -> int:
         line_map.save(args.output)
         progress.update(1, "done")
     seconds = time.perf_counter() - start
+    repeated = line_map.metadata.get("repeated_points", 0)
     print(
         f"{args.output}: {len(line_map)} segments, {len(line_map.clusters)} clusters "
         f"from {len(points):,} points in {seconds:.1f} s"
+        + (f" ({repeated:,} of them exact repeats, dropped)" if repeated else "")
     )
     return 0
 

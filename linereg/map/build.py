@@ -56,6 +56,7 @@ class MapContent(NamedTuple):
     plane_normals: np.ndarray = np.zeros((0, 3))
     plane_areas: np.ndarray = np.zeros(0)
     notes: tuple[str, ...] = ()  # what was asked for and could not be done (e.g. intensity edges, no rings)
+    repeated: int = 0  # points dropped as exact copies of earlier ones (``distinct_points``)
 
 
 def extract_map(
@@ -85,6 +86,18 @@ def extract_map(
     if progress:
         progress("profile")
     profile, ring = profile_and_rings(points, sensor_origin, config.profile)
+    repeated = 0
+    if len(points) > 1 and profile.spacing_p10_m == 0.0:
+        # a tenth of the points sampled have an exact twin (an export repeating its points, a merge of
+        # overlapping copies): copies add no geometry, but every density the build is tuned by counts them,
+        # and a spacing of 0 is no scale (a plane repeated 10x gave no line); the first of each is kept, in
+        # the cloud's order (a sweep's rings follow it)
+        keep = distinct_points(points)
+        repeated = len(points) - len(keep)
+        points = points[keep]
+        intensity = None if intensity is None else intensity[keep]
+        logger.info("%d repeated points dropped (exact copies of earlier ones)", repeated)
+        profile, ring = profile_and_rings(points, sensor_origin, config.profile)
     lines_config = adapted_config(profile, config.lines3d, config.profile) if config.adapt else config.lines3d
     if len(points) == 0:
         return _empty(profile, lines_config, "the cloud holds no points")
@@ -145,8 +158,16 @@ def extract_map(
         logger.warning(note)
     return MapContent(
         segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas,
-        notes,
+        notes, repeated,
     )  # fmt: skip
+
+
+def distinct_points(points: np.ndarray) -> np.ndarray:
+    """Returns (K,) the sorted indices of the first occurrence of each distinct row of (P, 3) float64
+    points (-0.0 and 0.0 alike): the cloud without its exact repeats, in its own order."""
+    rows = np.ascontiguousarray(points + 0.0)  # -0.0 + 0.0 is 0.0: equal values, equal bytes
+    _, first = np.unique(rows.view(np.dtype((np.void, rows.dtype.itemsize * 3))).ravel(), return_index=True)
+    return np.sort(first)
 
 
 def _sensor_edges(

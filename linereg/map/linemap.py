@@ -101,7 +101,8 @@ class LineMap:
         known. ``intensity`` (P,): each point's return intensity, for ``MapBuildConfig.intensity_edges``
         (``io.read_cloud_intensity`` reads it). ``progress(stage)`` is called as stages start (profile,
         normals, regions, lines, clusters). An empty map says why in ``metadata["empty_reason"]``; what was
-        asked for and could not be done is in ``metadata["notes"]``.
+        asked for and could not be done is in ``metadata["notes"]``; how many points were dropped as exact
+        copies of earlier ones in ``metadata["repeated_points"]`` (when a tenth of them have a twin).
         """
         from .build import extract_map
 
@@ -118,6 +119,8 @@ class LineMap:
             extra["empty_reason"] = content.reason
         if content.notes:
             extra["notes"] = list(content.notes)
+        if content.repeated:  # exact copies of earlier points, dropped (``build.distinct_points``)
+            extra["repeated_points"] = content.repeated
         planes = (content.plane_normals, content.plane_areas) if config.plane_directions else None
         return cls.from_segments(
             content.segments,
