@@ -146,9 +146,8 @@ def _localize_undistorted(
             index = _seen_from_prior(line_map, camera, prior, config)
         view = map_view(line_map, index, config)
     if len(view.segments) < config.min_lines3d:
-        reason = (
-            f"only {len(view.segments)} map segments near the prior; at least {config.min_lines3d} are needed"
-        )
+        where = "the map has" if index is None else "the prior leaves"
+        reason = f"{where} only {len(view.segments)} segments; at least {config.min_lines3d} are needed"
         return Registration(success=False, reason=reason, timings=timer.finish())
     result = register_undistorted(lines2d, view, camera, config, timer, prior)
     if index is None:

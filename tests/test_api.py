@@ -89,3 +89,14 @@ def test_lines_without_structure_fail_with_a_reason_not_an_exception(camera, see
     assert isinstance(result, linereg.Registration)
     assert not result.success and result.reason
     assert result.cam_from_world.shape == (4, 4) and result.matches.shape == (0, 2)
+
+
+def test_a_map_too_small_to_pose_says_whether_the_map_or_the_prior_left_too_few(camera, rng):
+    lines2d = rng.uniform(0, 480, (40, 4))
+    tiny = linereg.LineMap.from_segments(np.array([[0.0, 0, 5, 1, 0, 5], [0, 0, 5, 0, 1, 5]]))
+    result = linereg.localize_segments(lines2d, tiny, camera)
+    assert not result.success and result.reason.startswith("the map has only 2 segments")
+    far = linereg.Prior(position=np.array([1000.0, 0, 0]), radius_m=1.0)
+    line_map = linereg.LineMap.from_segments(rng.uniform(-1, 1, (40, 6)) + np.array([0, 0, 5, 0, 0, 5]))
+    result = linereg.localize_segments(lines2d, line_map, camera, prior=far)
+    assert not result.success and result.reason.startswith("the prior leaves only")
