@@ -313,9 +313,8 @@ def _at_truth(
     ]
     poses = np.array([r.cam_from_world for r in results])
     fitted = np.array([np.isfinite(r.rms_px) for r in results])
-    return _row(poses, fitted, np.array([r.success for r in results]), truth, args) | _covariance(
-        results, truth
-    )
+    row = _row(poses, fitted, np.array([r.success for r in results]), truth, args)
+    return row | _covariance(results, truth)
 
 
 def _track(
@@ -504,6 +503,21 @@ def _print_seeds(seeds: list[int], results: list[dict[str, Any]]) -> None:
     print(f"smoothed ATE / per-frame ATE on the per-frame frames: {'  '.join(f'{x:.2f}' for x in ratios)}")
 
 
+# a row's keys the table shows (or that need no line): the rest are printed as JSON below it
+TABLED = (
+    "posed",
+    "success",
+    "wrong",
+    "within",
+    "ate_m",
+    "ate_deg",
+    "rpe_m",
+    "rpe_deg",
+    "frames",
+    "covariance",
+)
+
+
 def _print(name: str, rows: dict[str, Any], global_start: dict[str, Any]) -> None:
     print(f"\n{name}")
     print(
@@ -516,23 +530,7 @@ def _print(name: str, rows: dict[str, Any], global_start: dict[str, Any]) -> Non
             f"{row_name:<14} {r['posed']:6.1%} {r['success']:7.1%} {r['wrong']:5d} {r['within']:6.1%} {r['ate_m']:7.3f} {r['ate_deg']:7.2f} {r['rpe_m']:7.3f} {r['rpe_deg']:7.2f} {beyond:>9}"
         )
     for row_name, r in rows.items():
-        extra = {
-            k: v
-            for k, v in r.items()
-            if k
-            not in (
-                "posed",
-                "success",
-                "wrong",
-                "within",
-                "ate_m",
-                "ate_deg",
-                "rpe_m",
-                "rpe_deg",
-                "frames",
-                "covariance",
-            )
-        }
+        extra = {k: v for k, v in r.items() if k not in TABLED}
         if extra:
             print(f"  {row_name}: {json.dumps(extra)}")
     print(f"  global start found alone: {global_start['found']} ({json.dumps(global_start['attempts'])})")
