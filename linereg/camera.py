@@ -81,6 +81,13 @@ class Camera:
             raise InvalidInputError(f"{source}: missing key(s) {', '.join(missing)}")
         dist = d.get("dist", d.get("distortion", ()))
         if isinstance(dist, dict):  # {"model": ..., "coeffs": [...]} as in shared/data cameras.json
+            model = dist.get("model")
+            if isinstance(model, str) and _other_projection(model):
+                raise InvalidInputError(
+                    f"{source}: distortion model {model!r} is not OpenCV's radial-tangential one (k1 k2 p1 p2 "
+                    "[k3 [k4 k5 k6]]), which linereg undistorts with: undistort the images first, or give the "
+                    "camera in that model"
+                )
             dist = dist.get("coeffs", ())
         try:
             return cls(
@@ -108,3 +115,17 @@ class Camera:
             "height": self.height,
             "dist": list(self.dist),
         }
+
+
+# words naming lens models whose coefficients are not OpenCV's radial-tangential ones: read as such, a
+# fisheye's k1-k4 would be taken for k1 k2 p1 p2 and every line undistorted wrongly, without a word
+_OTHER_PROJECTIONS = (
+    "fisheye", "equidistant", "kannala", "brandt", "omni", "unified", "double_sphere", "division", "fov",
+    "thin_prism", "scaramuzza",
+)  # fmt: skip
+
+
+def _other_projection(model: str) -> bool:
+    """Returns True if a distortion model's name (any case, ``-`` or ``_``) names another projection."""
+    words = model.strip().lower().replace("-", "_")
+    return any(word in words for word in _OTHER_PROJECTIONS)

@@ -24,6 +24,29 @@ def test_camera_from_dict_names_missing_keys():
 
 
 @pytest.mark.parametrize(
+    ("model", "accepted"),
+    [
+        ("none", True),
+        ("opencv_radtan_k1k2p1p2", True),  # the names ../shared/data uses
+        ("opencv_radtan_k1k2p1p2k3", True),
+        ("OPENCV", True),
+        ("opencv_fisheye", False),  # k1-k4 of another projection: taken for k1 k2 p1 p2 it was silently wrong
+        ("Kannala-Brandt", False),
+        ("equidistant", False),
+        ("omni", False),
+    ],
+)
+def test_a_camera_of_another_lens_model_is_refused_by_name(model, accepted):
+    d = {"fx": 500, "fy": 500, "cx": 320, "cy": 240, "width": 640, "height": 480}
+    d["distortion"] = {"model": model, "coeffs": [0.1, 0.01, 0.001, 0.0001]}
+    if accepted:
+        assert linereg.Camera.from_dict(d).dist == (0.1, 0.01, 0.001, 0.0001)
+    else:
+        with pytest.raises(linereg.InvalidInputError, match=f"cam.json: distortion model '{model}'"):
+            linereg.Camera.from_dict(d, source="cam.json")
+
+
+@pytest.mark.parametrize(
     ("lines2d", "lines3d", "match"),
     [
         (np.zeros((10, 3)), np.ones((10, 6)), "lines2d.*shape"),
