@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .errors import MAX_COORDINATE, InvalidInputError
+from .errors import MAX_COORDINATE, InvalidInputError, beyond_bound
 from .geometry import camera_center, check_rigid, rotation_error_deg, unit_vector
 
 
@@ -52,7 +52,7 @@ class Prior:
             raise InvalidInputError("prior sigma_rot_deg needs cam_from_world (a rotation to be near)")
         if self.position is not None:
             p = np.asarray(self.position, dtype=np.float64).reshape(-1)
-            if p.shape != (3,) or not np.isfinite(p).all() or np.abs(p).max() > MAX_COORDINATE:
+            if p.shape != (3,) or not np.isfinite(p).all() or beyond_bound(p) is not None:
                 raise InvalidInputError(
                     f"prior position must be 3 finite numbers within +-{MAX_COORDINATE:g} m"
                 )
