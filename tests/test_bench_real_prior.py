@@ -24,3 +24,33 @@ def test_rough_guesses_lie_within_their_bounds_and_repeat():
     assert not np.allclose(
         camera_center(other), camera_center(rough_guess(truth, 5.0, 0.5, "scene/rgb_000000.png"))
     )
+
+
+def test_each_image_is_localized_from_as_many_guesses_as_asked(tmp_path):
+    """``--guesses N``: N records per image, the first from the guess the bench has always drawn."""
+    import argparse
+    from pathlib import Path
+
+    import pytest
+
+    from linereg.bench import real
+    from linereg.errors import InvalidInputError
+
+    item = real.RealImage(
+        scene="s", image_path=Path("rgb_1.png"), cloud_path=Path("c.ply"), camera=None, cam_from_world=None
+    )
+    seeds = [real.guess_seed(item, k) for k in range(3)]
+    assert seeds[0] == "s/rgb_1.png" and len(set(seeds)) == 3
+    parser = argparse.ArgumentParser()
+    real.configure(parser)
+    for argv in (["--guesses", "2"], ["--guesses", "0", "--prior", "5", "0.5"]):
+        with pytest.raises(InvalidInputError, match="--guesses"):
+            real.run(parser.parse_args([*argv, "--data", str(tmp_path), "--out", str(tmp_path / "o")]))
+    records = [
+        {"scene": "s", "image": "a", "success": True, "reported": True},
+        {"scene": "s", "image": "a", "success": False, "reported": True},  # claimed wrong from one guess
+        {"scene": "s", "image": "b", "success": False, "reported": False},
+    ]
+    assert real._per_image(records) == (
+        "per image: 1/2 right from at least one guess, 1/2 claimed wrong from at least one"
+    )
