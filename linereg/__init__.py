@@ -12,6 +12,7 @@ from .errors import FileFormatError, InvalidInputError, LineregError
 from .registration import Registration
 
 __all__ = [
+    "Calibration",
     "Camera",
     "FileFormatError",
     "InvalidInputError",
@@ -23,6 +24,8 @@ __all__ = [
     "SequenceConfig",
     "Tracker",
     "TrackingConfig",
+    "calibrate",
+    "calibrate_segments",
     "colorize",
     "localize",
     "localize_segments",
@@ -45,6 +48,9 @@ _LAZY = {
     "TrackingConfig": "linereg.tracking",
     "colorize": "linereg.colorization",
     "warm_up": "linereg.warm",
+    "calibrate": "linereg.calibration",
+    "calibrate_segments": "linereg.calibration",
+    "Calibration": "linereg.calibration",
 }
 
 

@@ -18,7 +18,7 @@ from pathlib import Path
 from ..errors import InvalidInputError, LineregError
 
 # subcommand -> module under linereg.cli (serve/query live in the service layer, imported only when run)
-SUBCOMMANDS = ("demo", "bench", "map", "localize", "track", "colorize", "serve", "query")
+SUBCOMMANDS = ("demo", "bench", "map", "localize", "calibrate", "track", "colorize", "serve", "query")
 
 
 def description(doc: str | None) -> str:

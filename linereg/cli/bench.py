@@ -25,6 +25,7 @@ BENCHMARKS: dict[str, str] = {
     "sequence": "linereg.bench.sequence:configure",
     "colorize": "linereg.bench.colorize:configure",
     "large": "linereg.bench.large:configure",
+    "calibrate": "linereg.bench.calibrate:configure",
 }
 
 

@@ -1,0 +1,520 @@
+"""Camera-LiDAR calibration: one camera pose in the frames of several LiDAR sweeps (a rig's extrinsic).
+
+A camera mounted rigidly on a LiDAR sees every sweep from the same pose in the sweep's own frame,
+``cam_from_lidar``. Each (photo, sweep map) pair alone is a localization near a rough guess of it
+(``localize`` with a ``Prior``), and alone a single sweep's map holds so little of its photo that a pose
+a few degrees off may explain more than the true one (docs/measurements.md, sessions 42 and 55). The
+extrinsic is the one pose that explains every photo at once, so the evidence of the frames adds up:
+
+1. candidates: each frame localized alone near the guess (``register_undistorted`` with the prior: its
+   answer and alternatives), the guess, and each frame's local optimum (``search.solve_locally``, as the
+   search solves its vote peaks) from every start of a cover of the guess's bounds (rotations on a lattice
+   of ``COVER_STEP_DEG`` within its ``sigma_rot_deg``, camera centres in cells a photo resolves);
+2. the candidates are ranked by their scores summed over the frames, and the best distinct ones refined
+   jointly: one pose, one GTSAM graph holding every frame's line-projection factor (``refine.fragments``
+   of each frame re-associated each round, each frame's residuals weighted by their own noise), then scored
+   again with occlusion by each map's surfaces (``pipeline.view_score``);
+3. the answer is the refined pose of the highest summed score, claimed only when at least two frames are
+   explained at it (``min_inliers`` matches each), every distinct pose found scores below ``1 - margin`` of
+   it, and its covariance pins it closer than distinct poses lie (``pipeline.undetermined``).
+
+The covariance fuses the frames' own: each frame's fit at the answer plus its map's floor
+(``pipeline.with_map_floor``), combined as independent measurements of one pose (information summed),
+plus the spread of the other refined poses that score within the margin without being distinct (law of
+total covariance, each such basin taken as likely as the answer: the decision's margin says a pose within
+it is not clearly worse). Single sweeps' summed scores can be rugged: on three to five KITTI frames of one
+drive the basins found lie 0.15-0.8 deg / 3-11 cm from the truth, with others a degree or two away scoring
+within the margin, and the fit's covariance alone had claimed a basin 1.4 deg off to a tenth of a degree
+(docs/measurements.md, session 55): such answers are now refused as undetermined.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field, replace
+
+import gtsam
+import numpy as np
+
+from .camera import Camera
+from .config import LineDetectConfig, RegisterConfig
+from .errors import InvalidInputError
+from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_error_deg
+from .line_factor import LineProjection, line_factor
+from .lines2d import detect
+from .localization import _seen_from_prior, map_view
+from .map.linemap import LineMap
+from .pipeline import (
+    MapView,
+    differs,
+    explains_too_little,
+    log10_nfa,
+    register_undistorted,
+    undetermined,
+    view_score,
+    with_map_floor,
+)
+from .priors import Prior, admits_pose
+from .refine import (
+    POSE_KEY,
+    _covariance,
+    _optimise,
+    _Problem,
+    _residuals,
+    fragments,
+    inlier_sigma,
+    robust_noise,
+)
+from .registration import Registration, check_segments
+from .score import ImageLines, Score, coverable_length, image_lines, score_pose
+from .search import solve_all
+from .significance import SearchSpace, depth_of
+from .timing import StageTimer
+
+__all__ = ["Calibration", "calibrate", "calibrate_segments"]
+
+COVER_STEP_DEG = 2.5  # the rotation lattice of the cover: its covering radius 2.2 deg
+COVER_PX = 70.0  # a cover cell's edge moves a point at the median depth in view this many pixels
+MAX_STARTS = 2000  # a cover of more starts is thinned to its rotations at the guess's centre
+CONTENDERS = 16  # the best distinct candidates by summed score, refined jointly
+
+
+@dataclass(frozen=True)
+class Calibration:
+    """A camera pose in the frames of several maps (a camera-LiDAR extrinsic).
+
+    cam_from_lidar: (4, 4) ``x_cam = R x_lidar + t`` (the guess when nothing near it explains the photos).
+    covariance: (6, 6) (rotation rad, translation m), camera frame, as ``Registration.covariance``.
+    score: the frames' scores at it, summed (px); frame_scores, frame_inliers, frame_rms_px: per frame;
+        frame_matches: per frame (K, 2) ``(i2d, j3d)``, j3d a row of that frame's map.
+    alternatives, alternative_scores: distinct poses found near the guess and their summed scores.
+    singles: each frame localized alone near the guess (``Registration``; matches index its map).
+    """
+
+    success: bool
+    reason: str = ""
+    cam_from_lidar: np.ndarray = field(default_factory=lambda: np.eye(4))
+    covariance: np.ndarray = field(default_factory=lambda: np.full((6, 6), np.nan))
+    score: float = 0.0
+    frame_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frame_inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    frame_rms_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    frame_matches: tuple[np.ndarray, ...] = ()
+    alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
+    alternative_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    singles: tuple[Registration, ...] = ()
+    timings: dict[str, float] = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        """Returns a JSON-ready dict (the per-frame localizations as their own dicts)."""
+
+        def finite(a: np.ndarray) -> list:
+            return np.where(np.isfinite(a), a, np.nan).tolist()
+
+        return {
+            "success": self.success,
+            "reason": self.reason,
+            "cam_from_lidar": self.cam_from_lidar.tolist(),
+            "covariance": None if not np.isfinite(self.covariance).all() else self.covariance.tolist(),
+            "score": self.score,
+            "frame_scores": finite(self.frame_scores),
+            "frame_inliers": self.frame_inliers.tolist(),
+            "frame_matches": [m.tolist() for m in self.frame_matches],
+            "frame_rms_px": [None if not np.isfinite(x) else float(x) for x in self.frame_rms_px],
+            "alternatives": self.alternatives.tolist(),
+            "alternative_scores": self.alternative_scores.tolist(),
+            "singles": [s.to_dict() for s in self.singles],
+            "timings": self.timings,
+        }
+
+
+@dataclass(frozen=True)
+class _Frame:
+    """One photo's side of the calibration: its lines, camera (undistorted), map view and score's image."""
+
+    lines2d: np.ndarray
+    camera: Camera
+    view: MapView
+    image: ImageLines
+    rows: np.ndarray  # the map rows of the view's segments
+
+
+def calibrate(
+    images: Sequence[np.ndarray],
+    maps: Sequence[LineMap],
+    camera: Camera | Sequence[Camera],
+    guess: Prior,
+    config: RegisterConfig | None = None,
+    detect_config: LineDetectConfig | None = None,
+) -> Calibration:
+    """Returns the Calibration of photos ``images[k]`` taken from one pose in the frames of ``maps[k]``
+    (each sweep's line map in its LiDAR's frame), near ``guess`` (a Prior with a whole pose:
+    ``cam_from_world`` is the guessed cam_from_lidar, ``sigma_rot_deg`` and ``radius_m`` how far off it may
+    be). ``camera``: one for every photo, or one per photo."""
+    cameras = _cameras(camera, len(images))
+    lines = [detect(image, cam, detect_config) for image, cam in zip(images, cameras, strict=True)]
+    return _calibrate_undistorted(lines, maps, [c.undistorted() for c in cameras], guess, config)
+
+
+def calibrate_segments(
+    lines2d: Sequence[np.ndarray],
+    maps: Sequence[LineMap],
+    camera: Camera | Sequence[Camera],
+    guess: Prior,
+    config: RegisterConfig | None = None,
+) -> Calibration:
+    """``calibrate`` of precomputed (N, 4) segments per photo (distorted pixels if the camera has a
+    distortion)."""
+    cameras = _cameras(camera, len(lines2d))
+    undistorted = []
+    for k, (segments, cam) in enumerate(zip(lines2d, cameras, strict=True)):
+        segments = check_segments(segments, f"lines2d[{k}]", 4)
+        if cam.has_distortion:
+            segments = cam.undistort_points(segments.reshape(-1, 2)).reshape(-1, 4)
+        undistorted.append(segments)
+    return _calibrate_undistorted(undistorted, maps, [c.undistorted() for c in cameras], guess, config)
+
+
+def _cameras(camera: Camera | Sequence[Camera], count: int) -> list[Camera]:
+    if isinstance(camera, Camera):
+        return [camera] * count
+    cameras = list(camera)
+    if len(cameras) != count or not all(isinstance(c, Camera) for c in cameras):
+        raise InvalidInputError(
+            f"camera must be a Camera or one Camera per photo ({count}), got {len(cameras)}"
+        )
+    return cameras
+
+
+def _check(lines2d: Sequence[np.ndarray], maps: Sequence[LineMap], guess: Prior) -> None:
+    if len(lines2d) != len(maps):
+        raise InvalidInputError(f"one map per photo: {len(lines2d)} photos, {len(maps)} maps")
+    if len(maps) < 2:
+        raise InvalidInputError(f"calibration needs at least 2 photos with their maps, got {len(maps)}")
+    if not isinstance(guess, Prior) or guess.cam_from_world is None or guess.radius_m is None:
+        raise InvalidInputError("guess must be a Prior with a whole pose (cam_from_world) and radius_m")
+
+
+def _calibrate_undistorted(
+    lines2d: Sequence[np.ndarray],
+    maps: Sequence[LineMap],
+    cameras: Sequence[Camera],
+    guess: Prior,
+    config: RegisterConfig | None,
+) -> Calibration:
+    _check(lines2d, maps, guess)
+    config = config or RegisterConfig()
+    timings: dict[str, float] = {}
+    start = time.perf_counter()
+    frames: list[_Frame] = []
+    singles: list[Registration] = []
+    for segments, line_map, cam in zip(lines2d, maps, cameras, strict=True):
+        rows = _seen_from_prior(line_map, cam, guess, config)
+        view = map_view(line_map, rows, config)
+        frames.append(_Frame(segments, cam, view, image_lines(segments, cam, config.score), rows))
+        if len(segments) < config.min_lines2d or len(view.segments) < config.min_lines3d:
+            singles.append(
+                Registration(False, reason="too few lines in the photo or near the guess in its map")
+            )
+        else:
+            singles.append(register_undistorted(segments, view, cam, config, StageTimer(), guess))
+    timings["alone"] = time.perf_counter() - start
+    start = time.perf_counter()
+    # candidates: each frame's own answer and alternatives, the guess, and each frame's local optimum
+    # from every start of the cover (``search.solve_locally``, as the search solves its vote peaks)
+    candidates = [np.asarray(guess.cam_from_world)]
+    for single in singles:
+        if single.score > 0:
+            candidates.append(single.cam_from_world)
+        candidates += list(single.alternatives)
+    starts, slack_deg = _cover(guess, frames, config)
+    rotations = len({T[:3, :3].tobytes() for T, _ in starts}) + len(candidates)
+    wide = replace(config.search, rotation_slack_deg=slack_deg)
+    for f in frames:
+        solved = solve_all(
+            starts, f.image, f.view.segments, f.camera, wide, config.score, f.view.visible, f.view.chunks
+        )
+        candidates += [s[0] for s in solved if s is not None]
+    candidates = [T for T in candidates if admits_pose(guess, T)]
+    everything = np.concatenate([f.view.segments for f in frames])
+    ranked = sorted(candidates, key=lambda T: -_summed_unhidden(frames, T, config))
+    contenders: list[np.ndarray] = []
+    for T in ranked:
+        if all(differs(T, other, everything, config.decide) for other in contenders):
+            contenders.append(T)
+        if len(contenders) == CONTENDERS:
+            break
+    refined: list[tuple[np.ndarray, np.ndarray, float]] = []  # (pose, fit covariance, summed score)
+    for T in contenders:
+        pose, covariance = refine_jointly(frames, T, config)
+        if not admits_pose(guess, pose) or any(_same_pose(pose, other) for other, _, _ in refined):
+            continue  # outside the guess's bounds, or a basin reached before
+        refined.append((pose, covariance, _summed(frames, pose, config)))
+    timings["joint"] = time.perf_counter() - start
+    if not refined:
+        reason = "every pose refined over the frames leaves the guess's bounds"
+        return Calibration(
+            False, reason, np.asarray(guess.cam_from_world), singles=tuple(singles), timings=timings
+        )
+    refined.sort(key=lambda r: -r[2])
+    pose, fit, value = refined[0]
+    margin = config.decide.margin
+    near = [T for T, _, v in refined[1:] if v >= (1.0 - margin) * value]
+    covariance = fit + _spread(pose, [T for T in near if not differs(T, pose, everything, config.decide)])
+    distinct: list[tuple[float, np.ndarray]] = []
+    for T, _, v in refined[1:]:
+        if differs(T, pose, everything, config.decide) and all(
+            differs(T, other, everything, config.decide) for _, other in distinct
+        ):
+            distinct.append((v, T))
+    seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
+    per_frame = [score for score, _ in seen]
+    frame_scores = np.array([s.value for s in per_frame])
+    matches = [s.matches(config.decide.min_cover) for s in per_frame]
+    frame_matches = tuple(
+        np.c_[m[:, 0], f.rows[m[:, 1]]].astype(np.int64) for m, f in zip(matches, frames, strict=True)
+    )
+    frame_inliers = np.array([len(m) for m in matches], dtype=np.int64)
+    frame_rms = np.array([_rms(f, pose, config) for f in frames])
+    space = SearchSpace((2.0 * float(guess.radius_m or 0.0)) ** 3, rotations, COVER_STEP_DEG * np.sqrt(3) / 2)
+    verdicts = [
+        _unexplained(f, pose, sc, part, config, space) for f, (sc, part) in zip(frames, seen, strict=True)
+    ]
+    explained = sum(not v for v in verdicts)
+    reason = ""
+    if value <= 0:
+        reason = "no pose near the guess explains the photos' lines"
+    elif explained < 2:
+        why = next(v for v in verdicts if v)
+        reason = f"{explained} of {len(frames)} photos are explained at the best pose, a calibration needs two ({why})"
+
+    elif distinct and distinct[0][0] >= (1.0 - margin) * value:
+        other = distinct[0][1]
+        turn = rotation_error_deg(other[:3, :3], pose[:3, :3])
+        shift = float(np.linalg.norm(camera_center(other) - camera_center(pose)))
+        reason = (
+            f"ambiguous: a distinct pose ({turn:.1f} deg, {shift:.2f} m away) scores "
+            f"{100 * distinct[0][0] / value:.0f} % of the best over the {len(frames)} photos"
+        )
+    else:
+        reason = undetermined(covariance, pose, everything, config.decide)
+    timings["total"] = timings["alone"] + timings["joint"]
+    return Calibration(
+        success=not reason,
+        reason=reason,
+        cam_from_lidar=pose,
+        covariance=covariance,
+        score=float(value),
+        frame_scores=frame_scores,
+        frame_inliers=frame_inliers,
+        frame_rms_px=frame_rms,
+        frame_matches=frame_matches,
+        alternatives=np.array([T for _, T in distinct[:8]]).reshape(-1, 4, 4),
+        alternative_scores=np.array([v for v, _ in distinct[:8]], dtype=np.float64),
+        singles=tuple(singles),
+        timings=timings,
+    )
+
+
+def _summed_unhidden(frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig) -> float:
+    """Returns the frames' scores of one pose without occlusion, summed (a cheap ranking of candidates)."""
+    return float(
+        sum(
+            score_pose(
+                f.image,
+                f.view.segments,
+                f.camera,
+                cam_from_lidar,
+                config.score,
+                f.view.visible,
+                f.view.chunks,
+            ).value
+            for f in frames
+        )
+    )
+
+
+def _summed(frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig) -> float:
+    """Returns the frames' occlusion-aware scores of one pose, summed."""
+    return float(
+        sum(view_score(f.view, f.image, f.camera, cam_from_lidar, config.score)[0].value for f in frames)
+    )
+
+
+def _rms(frame: _Frame, pose: np.ndarray, config: RegisterConfig) -> float:
+    """Returns a frame's rms px of its matched stretches at a pose (NaN: none)."""
+    problem = _frame_problem(frame, pose, config.score.distance_px, 1.0, config)
+    if problem is None:
+        return float("nan")
+    return float(np.sqrt(np.mean(np.square(_residuals(problem, pose)))))
+
+
+def _frame_problem(
+    frame: _Frame, pose: np.ndarray, tolerance_px: float, sigma_px: float, config: RegisterConfig
+) -> _Problem | None:
+    """Returns one frame's factor graph (its matched stretches at ``tolerance_px``, residuals of
+    ``sigma_px``), or None when it has fewer than ``refine.min_matches`` stretches."""
+    rc = config.refine
+    scored = score_pose(
+        frame.image, frame.view.segments, frame.camera, pose,
+        replace(config.score, distance_px=tolerance_px), frame.view.visible,
+    )  # fmt: skip
+    pairs, points = fragments(frame.image, frame.view.segments, frame.camera, pose, scored, rc)
+    if len(pairs) < rc.min_matches:
+        return None
+    coeffs = line_coefficients(frame.image.segments)
+    projection = LineProjection.build(coeffs[pairs[:, 0]], points, frame.camera, rc.min_depth_m)
+    graph = gtsam.NonlinearFactorGraph()
+    graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(pairs), sigma_px, rc)))
+    return _Problem(graph, projection)
+
+
+def refine_jointly(
+    frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Returns (the pose, its fused (6, 6) covariance) minimising every frame's line reprojection at once:
+    ``refine.refine_pose``'s rounds (score at a shrinking tolerance, fit the matched stretches) with one
+    factor per frame on one pose, each frame's residuals weighted by its own noise (``inlier_sigma``). The
+    start pose with NaN covariance when no frame has enough matches. (A start a degree or more off is
+    first solved per frame by ``search.solve_locally``: least squares from a tolerance that wide settled
+    in poor basins, KITTI frames 0.5 deg off the truth at a third of its summed score.)"""
+    rc, sc = config.refine, config.score
+    tolerance = [rc.start_factor * sc.distance_px] * len(frames)
+    sigma = [1.0] * len(frames)
+    pose = cam_from_lidar
+    for _ in range(rc.max_rounds):
+        problems = [_frame_problem(f, pose, tolerance[k], sigma[k], config) for k, f in enumerate(frames)]
+        kept = [p for p in problems if p is not None]
+        if not kept:
+            return cam_from_lidar, np.full((6, 6), np.nan)
+        graph = gtsam.NonlinearFactorGraph()
+        for problem in kept:
+            graph.push_back(problem.graph)
+        try:
+            moved = _optimise(_Problem(graph, kept[0].projection), pose, rc)
+        except RuntimeError:  # gtsam: an indeterminant system
+            break
+        step = rotation_error_deg(moved[:3, :3], pose[:3, :3])
+        shift = float(np.linalg.norm(camera_center(moved) - camera_center(pose)))
+        pose = moved
+        for k, item in enumerate(problems):
+            if item is None:
+                continue
+            residuals = _residuals(item, pose)
+            sigma[k] = max(inlier_sigma(residuals, tolerance[k]), 0.3)
+            tolerance[k] = float(np.clip(rc.outlier_sigmas * sigma[k], rc.min_outlier_px, tolerance[k]))
+        if step < 1e-4 and shift < 1e-5:
+            break
+    return pose, _fused_covariance(frames, pose, tolerance, config)
+
+
+def _fused_covariance(
+    frames: Sequence[_Frame], pose: np.ndarray, tolerance: Sequence[float], config: RegisterConfig
+) -> np.ndarray:
+    """Returns the covariance of one pose measured by each frame independently: each frame's own fit at
+    ``pose`` (``refine._covariance``) plus its map's floor, their information summed."""
+    information = np.zeros((6, 6))
+    for frame, tol in zip(frames, tolerance, strict=True):
+        problem = _frame_problem(frame, pose, tol, 1.0, config)
+        if problem is None:
+            continue
+        fit = _covariance(problem, pose, config.refine)
+        if not np.isfinite(fit).all():
+            continue
+        seen = view_score(frame.view, frame.image, frame.camera, pose, config.score)[1]
+        total = with_map_floor(fit, frame.view.accuracy_m, seen, pose)
+        try:
+            information += np.linalg.inv(total)
+        except np.linalg.LinAlgError:
+            continue
+    try:
+        covariance = np.linalg.inv(information)
+    except np.linalg.LinAlgError:
+        return np.full((6, 6), np.nan)
+    return 0.5 * (covariance + covariance.T) if np.isfinite(covariance).all() else np.full((6, 6), np.nan)
+
+
+def _cover(
+    guess: Prior, frames: Sequence[_Frame], config: RegisterConfig
+) -> tuple[list[tuple[np.ndarray, float]], float]:
+    """Returns (the starts (pose, m its centre may be off), the degrees its rotation may be off) covering
+    the guess's bounds: rotations on a lattice of ``COVER_STEP_DEG`` within ``sigma_rot_deg`` of the guess
+    (a cubic lattice of rotation vectors: every rotation lies within ``step * sqrt(3) / 2`` of one; half a
+    step more of slack), times camera centres at the middles of cells whose edge moves a point at the
+    median depth in view ``COVER_PX`` pixels; thinned to the rotations at the guess's centre (the whole
+    ball their size) when that makes more than ``MAX_STARTS``."""
+    from scipy.spatial.transform import Rotation
+
+    assert guess.cam_from_world is not None and guess.radius_m is not None
+    T0, radius = guess.cam_from_world, float(guess.radius_m)
+    sigma = float(guess.sigma_rot_deg or 0.0)
+    n = int(np.floor(sigma / COVER_STEP_DEG))
+    g = np.arange(-n, n + 1) * COVER_STEP_DEG
+    w = np.stack(np.meshgrid(g, g, g, indexing="ij"), -1).reshape(-1, 3)
+    w = w[np.linalg.norm(w, axis=1) <= sigma + 1e-9]
+    turns = [Rotation.from_rotvec(np.radians(v)).as_matrix() @ T0[:3, :3] for v in w]
+    focal = max(max(f.camera.fx, f.camera.fy) for f in frames)
+    depth = float(np.median([depth_of(f.view.segments, T0) for f in frames]))
+    cells = max(int(np.ceil(2 * radius / (COVER_PX * depth / focal))), 1)
+    offsets = (np.arange(cells) + 0.5) * (2 * radius / cells) - radius
+    shifts = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), -1).reshape(-1, 3)
+    half = radius / cells * np.sqrt(3)
+    shifts = shifts[np.linalg.norm(shifts, axis=1) <= radius + half]
+    if len(turns) * len(shifts) > MAX_STARTS:
+        shifts, half = np.zeros((1, 3)), radius
+    slack_deg = COVER_STEP_DEG * (np.sqrt(3) / 2 + 0.5)
+    centre = camera_center(T0)
+    starts = [(make_cam_from_world(R, -R @ (centre + d)), float(half)) for R in turns for d in shifts]
+    return starts, float(slack_deg)
+
+
+def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Returns True if two refined poses are one basin reached twice (within 0.01 deg and 1 mm)."""
+    close = float(np.linalg.norm(camera_center(a) - camera_center(b))) < 1e-3
+    return close and rotation_error_deg(a[:3, :3], b[:3, :3]) < 0.01
+
+
+def _spread(best: np.ndarray, others: Sequence[np.ndarray]) -> np.ndarray:
+    """Returns the (6, 6) second moment about ``best`` of it and ``others`` taken as equally likely
+    (gtsam's tangent of world_T_cam, rotation first, as the covariance): what the answer cannot tell
+    apart adds to its uncertainty (the law of total covariance)."""
+    if not others:
+        return np.zeros((6, 6))
+    here = gtsam.Pose3(invert(best))
+    xi = np.array([gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(T)))) for T in others])
+    return xi.T @ xi / (len(others) + 1)
+
+
+def _unexplained(
+    frame: _Frame,
+    pose: np.ndarray,
+    score: Score,
+    seen: np.ndarray,
+    config: RegisterConfig,
+    space: SearchSpace,
+) -> str:
+    """Returns why a frame does not count as explained at a pose ("" if it does): as the single-photo
+    decision asks (``pipeline.decide``), fewer than ``min_inliers`` matches, less than the floor of the
+    image length its map covers there (``explains_too_little``), or no more than chance would match among
+    the poses searched (``log10_nfa``)."""
+    dc = config.decide
+    matches = score.matches(dc.min_cover)
+    if len(matches) < config.min_inliers:
+        return f"{len(matches)} matches, fewer than {config.min_inliers}"
+
+    def coverable() -> float:
+        footprint = (
+            None
+            if frame.view.footprint is None
+            else frame.view.footprint(frame.camera, pose, config.score.distance_px)
+        )
+        return coverable_length(frame.image, frame.camera, pose, seen, footprint, config.score)
+
+    if short := explains_too_little(score.explained_length, frame.image, coverable, dc):
+        return f"a photo {short}"
+    distinct = len(np.unique(matches[:, 1]))
+    nfa = log10_nfa(pose, distinct, seen, frame.image, frame.camera, config, space)
+    if nfa >= dc.max_log10_nfa:
+        return f"a photo's matches are what 10^{nfa:.1f} chance poses would match"
+    return ""
