@@ -213,30 +213,10 @@ def _calibrate_undistorted(
         rows = _seen_from_prior(line_map, cam, guess, config)
         view = map_view(line_map, rows, config)
         frames.append(_Frame(segments, cam, view, image_lines(segments, cam, config.score), rows))
-        if len(segments) < config.min_lines2d or len(view.segments) < config.min_lines3d:
-            singles.append(
-                Registration(False, reason="too few lines in the photo or near the guess in its map")
-            )
-        else:
-            singles.append(register_undistorted(segments, view, cam, config, StageTimer(), guess))
+        singles.append(_alone(frames[-1], guess, config))
     timings["alone"] = time.perf_counter() - start
     start = time.perf_counter()
-    # candidates: each frame's own answer and alternatives, the guess, and each frame's local optimum
-    # from every start of the cover (``search.solve_locally``, as the search solves its vote peaks)
-    candidates = [np.asarray(guess.cam_from_world)]
-    for single in singles:
-        if single.score > 0:
-            candidates.append(single.cam_from_world)
-        candidates += list(single.alternatives)
-    starts, slack_deg = _cover(guess, frames, config)
-    rotations = len({T[:3, :3].tobytes() for T, _ in starts}) + len(candidates)
-    wide = replace(config.search, rotation_slack_deg=slack_deg)
-    for f in frames:
-        solved = solve_all(
-            starts, f.image, f.view.segments, f.camera, wide, config.score, f.view.visible, f.view.chunks
-        )
-        candidates += [s[0] for s in solved if s is not None]
-    candidates = [T for T in candidates if admits_pose(guess, T)]
+    candidates, rotations = _candidates(frames, singles, guess, config)
     everything = np.concatenate([f.view.segments for f in frames])
     ranked = sorted(candidates, key=lambda T: -_summed_unhidden(frames, T, config))
     contenders: list[np.ndarray] = []
@@ -252,32 +232,72 @@ def _calibrate_undistorted(
             continue  # outside the guess's bounds, or a basin reached before
         refined.append((pose, covariance, _summed(frames, pose, config)))
     timings["joint"] = time.perf_counter() - start
+    timings["total"] = timings["alone"] + timings["joint"]
     if not refined:
         reason = "every pose refined over the frames leaves the guess's bounds"
-        return Calibration(
-            False, reason, np.asarray(guess.cam_from_world), singles=tuple(singles), timings=timings
-        )
+        guessed = np.asarray(guess.cam_from_world)
+        return Calibration(False, reason, guessed, singles=tuple(singles), timings=timings)
     refined.sort(key=lambda r: -r[2])
+    space = SearchSpace((2.0 * float(guess.radius_m or 0.0)) ** 3, rotations, COVER_STEP_DEG * np.sqrt(3) / 2)
+    return replace(
+        _decide(frames, refined, everything, space, config), singles=tuple(singles), timings=timings
+    )
+
+
+def _alone(frame: _Frame, guess: Prior, config: RegisterConfig) -> Registration:
+    """Returns a frame's photo localized alone near the guess (its matches naming rows of its map)."""
+    if len(frame.lines2d) < config.min_lines2d or len(frame.view.segments) < config.min_lines3d:
+        return Registration(False, reason="too few lines in the photo or near the guess in its map")
+    single = register_undistorted(frame.lines2d, frame.view, frame.camera, config, StageTimer(), guess)
+    matches = np.c_[single.matches[:, 0], frame.rows[single.matches[:, 1]]].astype(np.int64)
+    return replace(single, matches=matches)
+
+
+def _candidates(
+    frames: Sequence[_Frame], singles: Sequence[Registration], guess: Prior, config: RegisterConfig
+) -> tuple[list[np.ndarray], int]:
+    """Returns (the poses within the guess's bounds to rank by summed score, how many rotations they
+    were searched about): the guess, each frame's own answer and alternatives, and each frame's local
+    optimum (``search.solve_locally``, as the search solves its vote peaks) from every start of the cover."""
+    candidates = [np.asarray(guess.cam_from_world)]
+    for single in singles:
+        if single.score > 0:
+            candidates.append(single.cam_from_world)
+        candidates += list(single.alternatives)
+    starts, slack_deg = _cover(guess, frames, config)
+    rotations = len({T[:3, :3].tobytes() for T, _ in starts}) + len(candidates)
+    wide = replace(config.search, rotation_slack_deg=slack_deg)
+    for f in frames:
+        solved = solve_all(
+            starts, f.image, f.view.segments, f.camera, wide, config.score, f.view.visible, f.view.chunks
+        )
+        candidates += [s[0] for s in solved if s is not None]
+    return [T for T in candidates if admits_pose(guess, T)], rotations
+
+
+def _decide(
+    frames: Sequence[_Frame],
+    refined: Sequence[tuple[np.ndarray, np.ndarray, float]],
+    everything: np.ndarray,
+    space: SearchSpace,
+    config: RegisterConfig,
+) -> Calibration:
+    """Returns the Calibration of the best of the jointly refined (pose, fit covariance, summed score),
+    best first: claimed when two frames are explained at it (``_unexplained``), no distinct pose scores
+    within the margin, and its covariance with the spread of the non-distinct basins within the margin
+    pins it (``pipeline.undetermined``)."""
+    dc = config.decide
     pose, fit, value = refined[0]
-    margin = config.decide.margin
-    near = [T for T, _, v in refined[1:] if v >= (1.0 - margin) * value]
-    covariance = fit + _spread(pose, [T for T in near if not differs(T, pose, everything, config.decide)])
+    near = [T for T, _, v in refined[1:] if v >= (1.0 - dc.margin) * value]
+    covariance = fit + _spread(pose, [T for T in near if not differs(T, pose, everything, dc)])
     distinct: list[tuple[float, np.ndarray]] = []
     for T, _, v in refined[1:]:
-        if differs(T, pose, everything, config.decide) and all(
-            differs(T, other, everything, config.decide) for _, other in distinct
+        if differs(T, pose, everything, dc) and all(
+            differs(T, other, everything, dc) for _, other in distinct
         ):
             distinct.append((v, T))
     seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
-    per_frame = [score for score, _ in seen]
-    frame_scores = np.array([s.value for s in per_frame])
-    matches = [s.matches(config.decide.min_cover) for s in per_frame]
-    frame_matches = tuple(
-        np.c_[m[:, 0], f.rows[m[:, 1]]].astype(np.int64) for m, f in zip(matches, frames, strict=True)
-    )
-    frame_inliers = np.array([len(m) for m in matches], dtype=np.int64)
-    frame_rms = np.array([_rms(f, pose, config) for f in frames])
-    space = SearchSpace((2.0 * float(guess.radius_m or 0.0)) ** 3, rotations, COVER_STEP_DEG * np.sqrt(3) / 2)
+    matches = [score.matches(dc.min_cover) for score, _ in seen]
     verdicts = [
         _unexplained(f, pose, sc, part, config, space) for f, (sc, part) in zip(frames, seen, strict=True)
     ]
@@ -288,8 +308,7 @@ def _calibrate_undistorted(
     elif explained < 2:
         why = next(v for v in verdicts if v)
         reason = f"{explained} of {len(frames)} photos are explained at the best pose, a calibration needs two ({why})"
-
-    elif distinct and distinct[0][0] >= (1.0 - margin) * value:
+    elif distinct and distinct[0][0] >= (1.0 - dc.margin) * value:
         other = distinct[0][1]
         turn = rotation_error_deg(other[:3, :3], pose[:3, :3])
         shift = float(np.linalg.norm(camera_center(other) - camera_center(pose)))
@@ -297,23 +316,24 @@ def _calibrate_undistorted(
             f"ambiguous: a distinct pose ({turn:.1f} deg, {shift:.2f} m away) scores "
             f"{100 * distinct[0][0] / value:.0f} % of the best over the {len(frames)} photos"
         )
+    elif not np.isfinite(covariance).all():
+        reason = "the photos' lines do not fix every degree of freedom of the pose (a degenerate fit)"
     else:
-        reason = undetermined(covariance, pose, everything, config.decide)
-    timings["total"] = timings["alone"] + timings["joint"]
+        reason = undetermined(covariance, pose, everything, dc)
     return Calibration(
         success=not reason,
         reason=reason,
         cam_from_lidar=pose,
         covariance=covariance,
         score=float(value),
-        frame_scores=frame_scores,
-        frame_inliers=frame_inliers,
-        frame_rms_px=frame_rms,
-        frame_matches=frame_matches,
+        frame_scores=np.array([score.value for score, _ in seen]),
+        frame_inliers=np.array([len(m) for m in matches], dtype=np.int64),
+        frame_rms_px=np.array([_rms(f, pose, config) for f in frames]),
+        frame_matches=tuple(
+            np.c_[m[:, 0], f.rows[m[:, 1]]].astype(np.int64) for m, f in zip(matches, frames, strict=True)
+        ),
         alternatives=np.array([T for _, T in distinct[:8]]).reshape(-1, 4, 4),
         alternative_scores=np.array([v for v, _ in distinct[:8]], dtype=np.float64),
-        singles=tuple(singles),
-        timings=timings,
     )
 
 

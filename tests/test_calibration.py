@@ -54,6 +54,8 @@ def test_the_extrinsic_is_found_from_a_rough_guess(rig):
     assert len(result.singles) == len(images) and result.frame_inliers.shape == (len(images),)
     assert (result.frame_inliers >= 10).all() and np.isfinite(result.frame_rms_px).all()
     assert result.score == pytest.approx(float(result.frame_scores.sum()))
+    for single, matches, line_map in zip(result.singles, result.frame_matches, maps, strict=True):
+        assert matches[:, 1].max() < len(line_map) and single.matches[:, 1].max(initial=0) < len(line_map)
     json.dumps(result.to_dict())  # every field serialisable
 
 
@@ -89,7 +91,7 @@ def test_the_command_line_writes_the_extrinsic_and_overlays(rig, tmp_path, capsy
         Rotation.from_rotvec(np.radians([-2.0, 1.0, 2.5])).as_matrix() @ extrinsic[:3, :3],
         extrinsic[:3, 3] + [-0.2, 0.1, 0.25],
     )
-    (tmp_path / "guess.json").write_text(json.dumps({"cam_from_world": guess.tolist()}))
+    (tmp_path / "guess.json").write_text(json.dumps({"cam_from_lidar": guess.tolist()}))
     common = ["--camera", str(tmp_path / "camera.json"), "--guess", str(tmp_path / "guess.json")]
     out = tmp_path / "extrinsic.json"
     code = main(["calibrate", *frames, *common, "--out", str(out), "--overlay", str(tmp_path / "ov")])

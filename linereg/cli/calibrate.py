@@ -9,7 +9,7 @@ Each ``--frame PHOTO MAP`` is one stop of the rig: its photo and its LiDAR's swe
 (``linereg map build SWEEP -o SWEEP.linemap``) or a point cloud (built here with the library's defaults).
 The guess is a JSON prior whose pose is the guessed cam_from_lidar ("x_cam = R x_lidar + t"), with how far
 off it may be (else ``--guess-sigma DEG M``, default 5 deg / 0.5 m):
-  {"cam_from_world": [[...], [...], [...], [0, 0, 0, 1]], "sigma_rot_deg": 5, "radius_m": 0.5}
+  {"cam_from_lidar": [[...], [...], [...], [0, 0, 0, 1]], "sigma_rot_deg": 5, "radius_m": 0.5}
 
 Every photo is localized alone near the guess, then the one pose that explains all of them together is
 found and refined in one GTSAM graph (``linereg.calibrate``). The JSON result holds the extrinsic, its
@@ -122,8 +122,10 @@ def _read_guess(path: Path, sigma: tuple[float, float]):
         data = json.loads(path.read_text())
     except (OSError, ValueError) as e:
         raise InvalidInputError(f"--guess {path}: {e}") from None
+    if isinstance(data, dict) and "cam_from_lidar" in data and "cam_from_world" not in data:
+        data["cam_from_world"] = data.pop("cam_from_lidar")  # the same pose, named for what it is here
     if not isinstance(data, dict) or ("cam_from_world" not in data and "world_from_cam" not in data):
-        raise InvalidInputError(f"--guess {path}: needs a pose, cam_from_world (the guessed cam_from_lidar)")
+        raise InvalidInputError(f"--guess {path}: needs a pose: cam_from_lidar (or cam_from_world)")
     data = {"sigma_rot_deg": sigma[0], "radius_m": sigma[1]} | data
     return Prior.from_dict(data, source=f"--guess {path}")
 
