@@ -84,9 +84,7 @@ def run(args: argparse.Namespace) -> int:
     progress = Progress(2 * len(args.frame) + 1, "calibrate")
     images, maps, cams = [], [], []
     for photo, source in args.frame:
-        camera = cameras if not isinstance(cameras, dict) else cameras.get(photo.name)
-        if camera is None:
-            raise InvalidInputError(f"--camera {args.camera}: no camera for {photo.name}")
+        camera = io.camera_for_image(cameras, photo, f"--camera {args.camera}")
         image = io.read_image(photo)
         if image.shape[:2] != (camera.height, camera.width):
             raise InvalidInputError(
