@@ -163,6 +163,7 @@ def calibrate_rig(rig: dict[str, Any], args: argparse.Namespace) -> list[dict[st
             "nees": nees(result.cam_from_lidar, truth, result.covariance) if result.success else None,
             "nees_any": nees(result.cam_from_lidar, truth, result.covariance),
             "alone": f"{alone_right}/{alone_wrong}", "alone_right": alone_right, "alone_wrong": alone_wrong,
+            "alone_errors": [[float(e[0]), float(e[1])] for ok, e in alone if ok],
             "seconds": seconds, "reason": result.reason[:90], "frame_inliers": result.frame_inliers.tolist(),
         })  # fmt: skip
         print(f"  {rig['name']} guess {k}: {'claimed' if result.success else 'not claimed'}, {rot:.3f} deg / "
@@ -183,8 +184,12 @@ def _summary(kind: str, rows: list[dict[str, Any]]) -> str:
             f"; median error of the right ones {np.median([r['rotation_deg'] for r in errors]):.3f} deg / "
             f"{np.median([r['position_m'] for r in errors]):.3f} m"
         )
+    claimed = np.array([e for r in rows for e in r["alone_errors"]]).reshape(-1, 2)
+    alone = ""
+    if len(claimed):
+        alone = f" (their claims' median error {np.median(claimed[:, 0]):.3f} deg / {np.median(claimed[:, 1]):.3f} m)"
     return (
         f"{kind}: {right}/{n} calibrations right, {wrong}/{n} claimed wrong, {beyond} claims beyond 3 sigma"
         f"{median}; the photos alone near the same guesses: {alone_right}/{photos} right, "
-        f"{alone_wrong}/{photos} claimed wrong"
+        f"{alone_wrong}/{photos} claimed wrong{alone}"
     )
