@@ -5,7 +5,7 @@
 Synthetic rigs: the demo scene of each seed, its photos taken from a rig whose camera sits 3 deg / 0.37 m
 off its LiDAR (``sim.rig``: each stop's map is the scan's map in that stop's LiDAR frame). Real rigs
 (``--data``): the images of every scene folder under the DIRs grouped by their ground-truth pose, each group of
-two or more one rig (KITTI's object frames of one drive share their Velodyne-to-camera calibration, and
+two or more one rig (KITTI's object frames of one day's drives share their Velodyne-to-camera calibration, and
 each folder's map is its sweep in the Velodyne's frame). Every rig is calibrated from ``--guesses`` rough
 guesses of its extrinsic (at most 5 deg / 0.5 m off, ``bench.real.rough_guess``) with ``linereg.calibrate``;
 the table gives per guess the joint answer (claimed or not, its error, its NEES: the error in its own
