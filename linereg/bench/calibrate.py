@@ -121,7 +121,7 @@ def real_rigs(folders: list[Path]) -> list[dict[str, Any]]:
             if item.cloud_path not in maps:
                 maps[item.cloud_path] = build_map(item.cloud_path)[0]
         rigs.append({
-            "name": "+".join(sorted({item.scene for item in items})), "kind": "real",
+            "name": _rig_name(sorted({item.scene for item in items})), "kind": "real",
             "images": [io.read_image(item.image_path) for item in items],
             "maps": [maps[item.cloud_path] for item in items],
             "cameras": [item.camera for item in items], "truth": items[0].cam_from_world,
@@ -193,3 +193,14 @@ def _summary(kind: str, rows: list[dict[str, Any]]) -> str:
         f"{median}; the photos alone near the same guesses: {alone_right}/{photos} right, "
         f"{alone_wrong}/{photos} claimed wrong{alone}"
     )
+
+
+def _rig_name(scenes: list[str]) -> str:
+    """Returns a rig's name: its scenes joined, or for more than five the start they share and how many."""
+    if len(scenes) <= 5:
+        return "+".join(scenes)
+    shared = scenes[0]
+    for scene in scenes[1:]:
+        while not scene.startswith(shared):
+            shared = shared[:-1]
+    return f"{shared.rstrip('_0') or scenes[0]}* ({len(scenes)} scenes)"
