@@ -20,6 +20,7 @@ extrinsic is the one pose that explains every photo at once, so the evidence of 
 
 The covariance fuses the frames' own: each frame's fit at the answer plus its map's floor
 (``pipeline.with_map_floor``), combined as independent measurements of one pose (information summed),
+scaled by how much more the frames' own optima disagree than those covariances allow (``_disagreement``),
 plus the spread of the other refined poses that score within the margin without being distinct (law of
 total covariance, each such basin taken as likely as the answer: the decision's margin says a pose within
 it is not clearly worse). Single sweeps' summed scores can be rugged: on three to five KITTI frames of one
@@ -64,6 +65,7 @@ from .refine import (
     _residuals,
     fragments,
     inlier_sigma,
+    refine_pose,
     robust_noise,
 )
 from .registration import Registration, check_segments
@@ -289,7 +291,8 @@ def _decide(
     dc = config.decide
     pose, fit, value = refined[0]
     near = [T for T, _, v in refined[1:] if v >= (1.0 - dc.margin) * value]
-    covariance = fit + _spread(pose, [T for T in near if not differs(T, pose, everything, dc)])
+    spread = _spread(pose, [T for T in near if not differs(T, pose, everything, dc)])
+    covariance = fit * _disagreement(frames, pose, config) + spread
     distinct: list[tuple[float, np.ndarray]] = []
     for T, _, v in refined[1:]:
         if differs(T, pose, everything, dc) and all(
@@ -453,6 +456,33 @@ def _fused_covariance(
     except np.linalg.LinAlgError:
         return np.full((6, 6), np.nan)
     return 0.5 * (covariance + covariance.T) if np.isfinite(covariance).all() else np.full((6, 6), np.nan)
+
+
+def _disagreement(frames: Sequence[_Frame], pose: np.ndarray, config: RegisterConfig) -> float:
+    """Returns how much more the frames disagree than their own covariances allow (>= 1): the reduced
+    chi-square of each frame's own optimum near ``pose`` (``refine_pose`` from it, alone) about it under
+    that frame's covariance with its map's floor (the Birge ratio, by which a combination of inconsistent
+    measurements scales its uncertainty). Single sweeps of one calibration settle a degree apart and each
+    claims a tenth of one: the fused covariance alone put the joint answer 8 sigma from KITTI's calibration."""
+    here = gtsam.Pose3(invert(pose))
+    chi2, dof = 0.0, 0
+    for f in frames:
+        alone = refine_pose(
+            f.image, f.view.segments, f.camera, pose, config.refine, config.score, f.view.visible
+        )
+        if not np.isfinite(alone.covariance).all():
+            continue
+        seen = view_score(f.view, f.image, f.camera, alone.cam_from_world, config.score)[1]
+        own = with_map_floor(alone.covariance, f.view.accuracy_m, seen, alone.cam_from_world)
+        xi = gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(alone.cam_from_world))))
+        try:
+            chi2 += float(xi @ np.linalg.solve(own, xi))
+        except np.linalg.LinAlgError:
+            continue
+        dof += 6
+    if dof <= 6:
+        return 1.0
+    return max(chi2 / (dof - 6), 1.0)
 
 
 def _cover(
