@@ -15,7 +15,8 @@ extrinsic is the one pose that explains every photo at once, so the evidence of 
    of each frame re-associated each round, each frame's residuals weighted by their own noise), then scored
    again with occlusion by each map's surfaces (``pipeline.view_score``);
 3. the answer is the refined pose of the highest summed score, claimed only when at least two frames are
-   explained at it (``min_inliers`` matches each), every distinct pose found scores below ``1 - margin`` of
+   explained at it as a single photo's decision asks (``min_inliers`` matches, the floor of the line length
+   its map covers, significance against chance), every distinct pose found scores below ``1 - margin`` of
    it, and its covariance pins it closer than distinct poses lie (``pipeline.undetermined``).
 
 The covariance fuses the frames' own: each frame's fit at the answer plus its map's floor
@@ -24,7 +25,7 @@ scaled by how much more the frames' own optima disagree than those covariances a
 plus the spread of the other refined poses that score within the margin without being distinct (law of
 total covariance, each such basin taken as likely as the answer: the decision's margin says a pose within
 it is not clearly worse). Single sweeps' summed scores can be rugged: on three to five KITTI frames of one
-drive the basins found lie 0.15-0.8 deg / 3-11 cm from the truth, with others a degree or two away scoring
+calibration the basins found lie 0.15-0.8 deg / 3-11 cm from the truth, with others a degree or two away scoring
 within the margin, and the fit's covariance alone had claimed a basin 1.4 deg off to a tenth of a degree
 (docs/measurements.md, session 55): such answers are now refused as undetermined.
 """
@@ -44,7 +45,7 @@ from .errors import InvalidInputError
 from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_error_deg
 from .line_factor import LineProjection, line_factor
 from .lines2d import detect
-from .localization import _seen_from_prior, map_view
+from .localization import map_view, seen_from_prior
 from .map.linemap import LineMap
 from .pipeline import (
     MapView,
@@ -59,13 +60,13 @@ from .pipeline import (
 from .priors import Prior, admits_pose
 from .refine import (
     POSE_KEY,
-    _covariance,
-    _optimise,
-    _Problem,
-    _residuals,
+    Problem,
     fragments,
     inlier_sigma,
+    optimise,
+    problem_covariance,
     refine_pose,
+    residuals_px,
     robust_noise,
 )
 from .registration import Registration, check_segments
@@ -212,7 +213,7 @@ def _calibrate_undistorted(
     frames: list[_Frame] = []
     singles: list[Registration] = []
     for segments, line_map, cam in zip(lines2d, maps, cameras, strict=True):
-        rows = _seen_from_prior(line_map, cam, guess, config)
+        rows = seen_from_prior(line_map, cam, guess, config)
         view = map_view(line_map, rows, config)
         frames.append(_Frame(segments, cam, view, image_lines(segments, cam, config.score), rows))
         singles.append(_alone(frames[-1], guess, config))
@@ -370,12 +371,12 @@ def _rms(frame: _Frame, pose: np.ndarray, config: RegisterConfig) -> float:
     problem = _frame_problem(frame, pose, config.score.distance_px, 1.0, config)
     if problem is None:
         return float("nan")
-    return float(np.sqrt(np.mean(np.square(_residuals(problem, pose)))))
+    return float(np.sqrt(np.mean(np.square(residuals_px(problem, pose)))))
 
 
 def _frame_problem(
     frame: _Frame, pose: np.ndarray, tolerance_px: float, sigma_px: float, config: RegisterConfig
-) -> _Problem | None:
+) -> Problem | None:
     """Returns one frame's factor graph (its matched stretches at ``tolerance_px``, residuals of
     ``sigma_px``), or None when it has fewer than ``refine.min_matches`` stretches."""
     rc = config.refine
@@ -390,7 +391,7 @@ def _frame_problem(
     projection = LineProjection.build(coeffs[pairs[:, 0]], points, frame.camera, rc.min_depth_m)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(pairs), sigma_px, rc)))
-    return _Problem(graph, projection)
+    return Problem(graph, projection)
 
 
 def refine_jointly(
@@ -415,7 +416,7 @@ def refine_jointly(
         for problem in kept:
             graph.push_back(problem.graph)
         try:
-            moved = _optimise(_Problem(graph, kept[0].projection), pose, rc)
+            moved = optimise(Problem(graph, kept[0].projection), pose, rc)
         except RuntimeError:  # gtsam: an indeterminant system
             break
         step = rotation_error_deg(moved[:3, :3], pose[:3, :3])
@@ -424,7 +425,7 @@ def refine_jointly(
         for k, item in enumerate(problems):
             if item is None:
                 continue
-            residuals = _residuals(item, pose)
+            residuals = residuals_px(item, pose)
             sigma[k] = max(inlier_sigma(residuals, tolerance[k]), 0.3)
             tolerance[k] = float(np.clip(rc.outlier_sigmas * sigma[k], rc.min_outlier_px, tolerance[k]))
         if step < 1e-4 and shift < 1e-5:
@@ -436,13 +437,13 @@ def _fused_covariance(
     frames: Sequence[_Frame], pose: np.ndarray, tolerance: Sequence[float], config: RegisterConfig
 ) -> np.ndarray:
     """Returns the covariance of one pose measured by each frame independently: each frame's own fit at
-    ``pose`` (``refine._covariance``) plus its map's floor, their information summed."""
+    ``pose`` (``refine.problem_covariance``) plus its map's floor, their information summed."""
     information = np.zeros((6, 6))
     for frame, tol in zip(frames, tolerance, strict=True):
         problem = _frame_problem(frame, pose, tol, 1.0, config)
         if problem is None:
             continue
-        fit = _covariance(problem, pose, config.refine)
+        fit = problem_covariance(problem, pose, config.refine)
         if not np.isfinite(fit).all():
             continue
         seen = view_score(frame.view, frame.image, frame.camera, pose, config.score)[1]

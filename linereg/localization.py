@@ -143,7 +143,7 @@ def _localize_undistorted(
     with timer("culling"):
         index = None
         if prior is not None and prior.position is not None and prior.radius_m is not None:
-            index = _seen_from_prior(line_map, camera, prior, config)
+            index = seen_from_prior(line_map, camera, prior, config)
         view = map_view(line_map, index, config)
     if len(view.segments) < config.min_lines3d:
         where = "the map has" if index is None else "the prior leaves"
@@ -156,7 +156,7 @@ def _localize_undistorted(
     return dataclasses.replace(result, matches=matches)
 
 
-def _seen_from_prior(line_map: LineMap, camera: Camera, prior: Prior, config: RegisterConfig) -> np.ndarray:
+def seen_from_prior(line_map: LineMap, camera: Camera, prior: Prior, config: RegisterConfig) -> np.ndarray:
     """Returns the (k,) int64 rows of the map segments that may project at least ``min_projected_px`` into
     the image from a pose the prior allows: its centre within the prior's ball and, with a prior rotation,
     turned at most 3 sigma from it (``map.reach``; the prior's rotation test, ``priors.admits``, is 3 sigma)."""

@@ -100,7 +100,7 @@ def refine_pose(
             return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
         rounds += 1
         try:
-            pose = _optimise(problem, pose, config)
+            pose = optimise(problem, pose, config)
         except RuntimeError as e:  # gtsam: indeterminant linear system
             log.debug("refinement failed: %s", e)
             return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
@@ -108,7 +108,7 @@ def refine_pose(
         previous = pairs
     if problem is None:
         return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
-    covariance = _covariance(problem, pose, config)
+    covariance = problem_covariance(problem, pose, config)
     final = score_pose(image, lines3d, camera, pose, score_config, visible)
     if not np.isfinite(covariance).all():
         return Refinement(pose, final, np.full((6, 6), np.nan), _rms_px(problem, pose), rounds)
@@ -184,7 +184,7 @@ def _nearest_on_line(a: np.ndarray, d: np.ndarray, c: np.ndarray, r: np.ndarray)
 
 
 @dataclass(frozen=True)
-class _Problem:
+class Problem:
     """One set of fitted points: its factor graph (one factor) and the factor's precomputation."""
 
     graph: gtsam.NonlinearFactorGraph
@@ -193,14 +193,14 @@ class _Problem:
 
 def _problem(
     coeffs: np.ndarray, points: np.ndarray, pairs: np.ndarray, camera: Camera, config: RefineConfig
-) -> _Problem | None:
+) -> Problem | None:
     """Returns the factor graph of eq. "costs" over (P, 6) fitted points, or None if degenerate."""
     if _degenerate(points, config):
         return None
     projection = LineProjection.build(coeffs[pairs[:, 0]], points, camera, config.min_depth_m)
     graph = gtsam.NonlinearFactorGraph()
     graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(pairs), 1.0, config)))
-    return _Problem(graph, projection)
+    return Problem(graph, projection)
 
 
 def robust_noise(dim: int, sigma_px: float, config: RefineConfig) -> gtsam.noiseModel.Base:
@@ -223,7 +223,7 @@ def _values(cam_from_world: np.ndarray) -> gtsam.Values:
     return values
 
 
-def _optimise(problem: _Problem, cam_from_world: np.ndarray, config: RefineConfig) -> np.ndarray:
+def optimise(problem: Problem, cam_from_world: np.ndarray, config: RefineConfig) -> np.ndarray:
     """Returns the (4, 4) cam_from_world minimising the robust cost, by Levenberg-Marquardt."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
@@ -236,7 +236,7 @@ def _optimise(problem: _Problem, cam_from_world: np.ndarray, config: RefineConfi
     return invert(result)
 
 
-def _residuals(problem: _Problem, cam_from_world: np.ndarray) -> np.ndarray:
+def residuals_px(problem: Problem, cam_from_world: np.ndarray) -> np.ndarray:
     """Returns (P, 2) point-to-line distances px of every pair at ``cam_from_world``."""
     world_from_cam = invert(cam_from_world)
     points = problem.projection.points_cam(world_from_cam[:3, :3], world_from_cam[:3, 3])
@@ -244,12 +244,12 @@ def _residuals(problem: _Problem, cam_from_world: np.ndarray) -> np.ndarray:
 
 
 def _threshold_px(
-    problem: _Problem, cam_from_world: np.ndarray, config: RefineConfig, ceiling: float
+    problem: Problem, cam_from_world: np.ndarray, config: RefineConfig, ceiling: float
 ) -> float:
     """Returns the next round's covering tolerance px: ``outlier_sigmas`` sigmas of the residuals' noise
     (``config.noise_model``: the inliers' of a mixture, ``inlier_sigma``, or the MAD's), clipped to
     ``[min_outlier_px, ceiling]`` (``ceiling``: this round's tolerance)."""
-    residuals = _residuals(problem, cam_from_world)
+    residuals = residuals_px(problem, cam_from_world)
     if config.noise_model == "mad":
         sigma = 1.4826 * float(np.median(np.abs(residuals)))
     else:
@@ -311,11 +311,11 @@ def _weights(
     return numpy_sum(weight), numpy_sum(spread)
 
 
-def _rms_px(problem: _Problem, cam_from_world: np.ndarray) -> float:
-    return float(np.sqrt(np.mean(np.square(_residuals(problem, cam_from_world)))))
+def _rms_px(problem: Problem, cam_from_world: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.square(residuals_px(problem, cam_from_world)))))
 
 
-def _covariance(problem: _Problem, cam_from_world: np.ndarray, config: RefineConfig) -> np.ndarray:
+def problem_covariance(problem: Problem, cam_from_world: np.ndarray, config: RefineConfig) -> np.ndarray:
     """Returns (6, 6) pose covariance (body frame, rotation first) in px-noise units, NaN if singular.
 
     ``Marginals`` gives ``(J^T W J)^-1`` for sigma = 1 px with the kernel's weights W at the optimum. It is
@@ -327,7 +327,7 @@ def _covariance(problem: _Problem, cam_from_world: np.ndarray, config: RefineCon
     except RuntimeError as e:  # indeterminant system: the matches do not fix all 6 DoF
         log.debug("marginals failed: %s", e)
         return np.full((6, 6), np.nan)
-    return marginal * residual_variance(_residuals(problem, cam_from_world).ravel(), config, 6)
+    return marginal * residual_variance(residuals_px(problem, cam_from_world).ravel(), config, 6)
 
 
 def residual_variance(r: np.ndarray, config: RefineConfig, num_params: int) -> float:
