@@ -90,7 +90,9 @@ class Calibration:
     cam_from_lidar: (4, 4) ``x_cam = R x_lidar + t`` (the guess when nothing near it explains the photos).
     covariance: (6, 6) (rotation rad, translation m), camera frame, as ``Registration.covariance``.
     score: the frames' scores at it, summed (px); frame_scores, frame_inliers, frame_rms_px: per frame;
-        frame_matches: per frame (K, 2) ``(i2d, j3d)``, j3d a row of that frame's map.
+        frame_matches: per frame (K, 2) ``(i2d, j3d)``, j3d a row of that frame's map; frame_offsets: (K, 2)
+        where each photo alone settles, refined from the answer (degrees, metres from it; NaN: its fit is
+        degenerate): a photo far from the others is the one to look at (a moving truck, a bad sweep).
     alternatives, alternative_scores: distinct poses found near the guess and their summed scores.
     singles: each frame localized alone near the guess (``Registration``; matches index its map).
     """
@@ -104,6 +106,7 @@ class Calibration:
     frame_inliers: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     frame_rms_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     frame_matches: tuple[np.ndarray, ...] = ()
+    frame_offsets: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     alternatives: np.ndarray = field(default_factory=lambda: np.zeros((0, 4, 4)))
     alternative_scores: np.ndarray = field(default_factory=lambda: np.zeros(0))
     singles: tuple[Registration, ...] = ()
@@ -125,6 +128,9 @@ class Calibration:
             "frame_inliers": self.frame_inliers.tolist(),
             "frame_matches": [m.tolist() for m in self.frame_matches],
             "frame_rms_px": [None if not np.isfinite(x) else float(x) for x in self.frame_rms_px],
+            "frame_offsets": [
+                [None if not np.isfinite(x) else float(x) for x in row] for row in self.frame_offsets
+            ],
             "alternatives": self.alternatives.tolist(),
             "alternative_scores": self.alternative_scores.tolist(),
             "singles": [s.to_dict() for s in self.singles],
@@ -293,7 +299,8 @@ def _decide(
     pose, fit, value = refined[0]
     near = [T for T, _, v in refined[1:] if v >= (1.0 - dc.margin) * value]
     spread = _spread(pose, [T for T in near if not differs(T, pose, everything, dc)])
-    covariance = fit * _disagreement(frames, pose, config) + spread
+    ratio, offsets = _disagreement(frames, pose, config)
+    covariance = fit * ratio + spread
     distinct: list[tuple[float, np.ndarray]] = []
     for T, _, v in refined[1:]:
         if differs(T, pose, everything, dc) and all(
@@ -333,6 +340,7 @@ def _decide(
         frame_scores=np.array([score.value for score, _ in seen]),
         frame_inliers=np.array([len(m) for m in matches], dtype=np.int64),
         frame_rms_px=np.array([_rms(f, pose, config) for f in frames]),
+        frame_offsets=offsets,
         frame_matches=tuple(
             np.c_[m[:, 0], f.rows[m[:, 1]]].astype(np.int64) for m, f in zip(matches, frames, strict=True)
         ),
@@ -459,31 +467,39 @@ def _fused_covariance(
     return 0.5 * (covariance + covariance.T) if np.isfinite(covariance).all() else np.full((6, 6), np.nan)
 
 
-def _disagreement(frames: Sequence[_Frame], pose: np.ndarray, config: RegisterConfig) -> float:
-    """Returns how much more the frames disagree than their own covariances allow (>= 1): the reduced
-    chi-square of each frame's own optimum near ``pose`` (``refine_pose`` from it, alone) about it under
-    that frame's covariance with its map's floor (the Birge ratio, by which a combination of inconsistent
-    measurements scales its uncertainty). Single sweeps of one calibration settle a degree apart and each
-    claims a tenth of one: the fused covariance alone put the joint answer 8 sigma from KITTI's calibration."""
+def _disagreement(
+    frames: Sequence[_Frame], pose: np.ndarray, config: RegisterConfig
+) -> tuple[float, np.ndarray]:
+    """Returns (how much more the frames disagree than their own covariances allow, >= 1; (K, 2) each
+    frame's own optimum near ``pose`` as degrees and metres from it, NaN where its fit is degenerate): the
+    first is the reduced chi-square of each frame's own optimum (``refine_pose`` from ``pose``, alone)
+    about ``pose`` under that frame's covariance with its map's floor (the Birge ratio, by which a
+    combination of inconsistent measurements scales its uncertainty). Single sweeps of one calibration
+    settle a degree apart and each claims a tenth of one: the fused covariance alone put the joint answer 8
+    sigma from KITTI's calibration."""
     here = gtsam.Pose3(invert(pose))
     chi2, dof = 0.0, 0
-    for f in frames:
+    offsets = np.full((len(frames), 2), np.nan)
+    for k, f in enumerate(frames):
         alone = refine_pose(
             f.image, f.view.segments, f.camera, pose, config.refine, config.score, f.view.visible
         )
         if not np.isfinite(alone.covariance).all():
             continue
-        seen = view_score(f.view, f.image, f.camera, alone.cam_from_world, config.score)[1]
-        own = with_map_floor(alone.covariance, f.view.accuracy_m, seen, alone.cam_from_world)
-        xi = gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(alone.cam_from_world))))
+        T = alone.cam_from_world
+        offsets[k] = (
+            rotation_error_deg(T[:3, :3], pose[:3, :3]),
+            np.linalg.norm(camera_center(T) - camera_center(pose)),
+        )
+        seen = view_score(f.view, f.image, f.camera, T, config.score)[1]
+        own = with_map_floor(alone.covariance, f.view.accuracy_m, seen, T)
+        xi = gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(T))))
         try:
             chi2 += float(xi @ np.linalg.solve(own, xi))
         except np.linalg.LinAlgError:
             continue
         dof += 6
-    if dof <= 6:
-        return 1.0
-    return max(chi2 / (dof - 6), 1.0)
+    return (max(chi2 / (dof - 6), 1.0) if dof > 6 else 1.0), offsets
 
 
 def _cover(

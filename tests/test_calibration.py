@@ -53,6 +53,7 @@ def test_the_extrinsic_is_found_from_a_rough_guess(rig):
     assert nees(result.cam_from_lidar, extrinsic, result.covariance) < 20.1  # within its own 3 sigma
     assert len(result.singles) == len(images) and result.frame_inliers.shape == (len(images),)
     assert (result.frame_inliers >= 10).all() and np.isfinite(result.frame_rms_px).all()
+    assert result.frame_offsets.shape == (len(images), 2) and np.nanmax(result.frame_offsets[:, 0]) < 1.0
     assert result.score == pytest.approx(float(result.frame_scores.sum()))
     for single, matches, line_map in zip(result.singles, result.frame_matches, maps, strict=True):
         assert matches[:, 1].max() < len(line_map) and single.matches[:, 1].max(initial=0) < len(line_map)
