@@ -107,9 +107,30 @@ def run(args: argparse.Namespace) -> int:
     if args.overlay is not None:
         _overlays(args, images, maps, cams, result)
     verdict = "calibrated" if result.success else f"not claimed: {result.reason}"
-    print(f"{verdict}; {len(images)} photos, inliers {result.frame_inliers.tolist()}; wrote {args.out}")
+    print(f"{verdict}; {len(images)} photos; wrote {args.out}")
+    print(_frame_table(args.frame, result))
     print(json.dumps({"cam_from_lidar": result.cam_from_lidar.round(6).tolist()}), file=sys.stdout)
     return 0 if result.success else 1
+
+
+def _frame_table(frames: list, result) -> str:
+    """Returns one line per photo: its matches and score at the answer, where it settles alone."""
+    from ..bench.report import format_table
+
+    rows = []
+    for k, (photo, _) in enumerate(frames):
+        rotation, shift = result.frame_offsets[k] if k < len(result.frame_offsets) else (None, None)
+        rows.append({
+            "photo": photo.name,
+            "inliers": int(result.frame_inliers[k]) if k < len(result.frame_inliers) else None,
+            "score": float(result.frame_scores[k]) if k < len(result.frame_scores) else None,
+            "rotation": rotation, "shift": shift,
+        })  # fmt: skip
+    columns = (
+        ("photo", "photo", ""), ("inliers", "inliers", "d"), ("score", "score px", ".0f"),
+        ("rotation", "alone: deg off", ".2f"), ("shift", "m off", ".3f"),
+    )  # fmt: skip
+    return format_table(rows, columns)
 
 
 def _read_guess(path: Path, sigma: tuple[float, float]):
