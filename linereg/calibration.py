@@ -43,7 +43,6 @@ from .camera import Camera
 from .config import LineDetectConfig, RegisterConfig
 from .errors import InvalidInputError
 from .geometry import camera_center, invert, line_coefficients, make_cam_from_world, rotation_error_deg
-from .line_factor import LineProjection, line_factor
 from .lines2d import detect
 from .localization import map_view, seen_from_prior
 from .map.linemap import LineMap
@@ -59,15 +58,14 @@ from .pipeline import (
 )
 from .priors import Prior, admits_pose
 from .refine import (
-    POSE_KEY,
     Problem,
     fragments,
     inlier_sigma,
+    line_problem,
     optimise,
     problem_covariance,
     refine_pose,
     residuals_px,
-    robust_noise,
 )
 from .registration import Registration, check_segments
 from .score import ImageLines, Score, coverable_length, image_lines, score_pose
@@ -147,6 +145,7 @@ class _Frame:
     view: MapView
     image: ImageLines
     rows: np.ndarray  # the map rows of the view's segments
+    coeffs: np.ndarray  # (N, 3) the image segments' line coefficients
 
 
 def calibrate(
@@ -221,7 +220,8 @@ def _calibrate_undistorted(
     for segments, line_map, cam in zip(lines2d, maps, cameras, strict=True):
         rows = seen_from_prior(line_map, cam, guess, config)
         view = map_view(line_map, rows, config)
-        frames.append(_Frame(segments, cam, view, image_lines(segments, cam, config.score), rows))
+        image = image_lines(segments, cam, config.score)
+        frames.append(_Frame(segments, cam, view, image, rows, line_coefficients(image.segments)))
         singles.append(_alone(frames[-1], guess, config))
     timings["alone"] = time.perf_counter() - start
     start = time.perf_counter()
@@ -234,12 +234,12 @@ def _calibrate_undistorted(
             contenders.append(T)
         if len(contenders) == CONTENDERS:
             break
-    refined: list[tuple[np.ndarray, np.ndarray, float]] = []  # (pose, fit covariance, summed score)
+    refined: list[tuple[np.ndarray, list[float], float]] = []  # (pose, tolerances, summed score)
     for T in contenders:
-        pose, covariance = refine_jointly(frames, T, config)
+        pose, tolerance = refine_jointly(frames, T, config)
         if not admits_pose(guess, pose) or any(_same_pose(pose, other) for other, _, _ in refined):
             continue  # outside the guess's bounds, or a basin reached before
-        refined.append((pose, covariance, _summed(frames, pose, config)))
+        refined.append((pose, tolerance, _summed(frames, pose, config)))
     timings["joint"] = time.perf_counter() - start
     timings["total"] = timings["alone"] + timings["joint"]
     if not refined:
@@ -286,17 +286,19 @@ def _candidates(
 
 def _decide(
     frames: Sequence[_Frame],
-    refined: Sequence[tuple[np.ndarray, np.ndarray, float]],
+    refined: Sequence[tuple[np.ndarray, list[float], float]],
     everything: np.ndarray,
     space: SearchSpace,
     config: RegisterConfig,
 ) -> Calibration:
-    """Returns the Calibration of the best of the jointly refined (pose, fit covariance, summed score),
-    best first: claimed when two frames are explained at it (``_unexplained``), no distinct pose scores
+    """Returns the Calibration of the best of the jointly refined (pose, frames' tolerances, summed
+    score), best first: claimed when two frames are explained at it (``_unexplained``), no distinct pose scores
     within the margin, and its covariance with the spread of the non-distinct basins within the margin
     pins it (``pipeline.undetermined``)."""
     dc = config.decide
-    pose, fit, value = refined[0]
+    pose, tolerance, value = refined[0]
+    seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
+    fit = _fused_covariance(frames, pose, tolerance, [part for _, part in seen], config)
     near = [T for T, _, v in refined[1:] if v >= (1.0 - dc.margin) * value]
     spread = _spread(pose, [T for T in near if not differs(T, pose, everything, dc)])
     ratio, offsets = _disagreement(frames, pose, config)
@@ -307,7 +309,6 @@ def _decide(
             differs(T, other, everything, dc) for _, other in distinct
         ):
             distinct.append((v, T))
-    seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
     matches = [score.matches(dc.min_cover) for score, _ in seen]
     verdicts = [
         _unexplained(f, pose, sc, part, config, space) for f, (sc, part) in zip(frames, seen, strict=True)
@@ -395,20 +396,17 @@ def _frame_problem(
     pairs, points = fragments(frame.image, frame.view.segments, frame.camera, pose, scored, rc)
     if len(pairs) < rc.min_matches:
         return None
-    coeffs = line_coefficients(frame.image.segments)
-    projection = LineProjection.build(coeffs[pairs[:, 0]], points, frame.camera, rc.min_depth_m)
-    graph = gtsam.NonlinearFactorGraph()
-    graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(pairs), sigma_px, rc)))
-    return Problem(graph, projection)
+    return line_problem(frame.coeffs[pairs[:, 0]], points, frame.camera, rc, sigma_px)
 
 
 def refine_jointly(
     frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """Returns (the pose, its fused (6, 6) covariance) minimising every frame's line reprojection at once:
+) -> tuple[np.ndarray, list[float]]:
+    """Returns (the pose, each frame's last matching tolerance px, for ``_fused_covariance``) minimising
+    every frame's line reprojection at once:
     ``refine.refine_pose``'s rounds (score at a shrinking tolerance, fit the matched stretches) with one
     factor per frame on one pose, each frame's residuals weighted by its own noise (``inlier_sigma``). The
-    start pose with NaN covariance when no frame has enough matches. (A start a degree or more off is
+    start pose when no frame has enough matches. (A start a degree or more off is
     first solved per frame by ``search.solve_locally``: least squares from a tolerance that wide settled
     in poor basins, KITTI frames 0.5 deg off the truth at a third of its summed score.)"""
     rc, sc = config.refine, config.score
@@ -419,12 +417,12 @@ def refine_jointly(
         problems = [_frame_problem(f, pose, tolerance[k], sigma[k], config) for k, f in enumerate(frames)]
         kept = [p for p in problems if p is not None]
         if not kept:
-            return cam_from_lidar, np.full((6, 6), np.nan)
+            return cam_from_lidar, tolerance
         graph = gtsam.NonlinearFactorGraph()
         for problem in kept:
             graph.push_back(problem.graph)
         try:
-            moved = optimise(Problem(graph, kept[0].projection), pose, rc)
+            moved = optimise(graph, pose, rc)
         except RuntimeError:  # gtsam: an indeterminant system
             break
         step = rotation_error_deg(moved[:3, :3], pose[:3, :3])
@@ -438,24 +436,28 @@ def refine_jointly(
             tolerance[k] = float(np.clip(rc.outlier_sigmas * sigma[k], rc.min_outlier_px, tolerance[k]))
         if step < 1e-4 and shift < 1e-5:
             break
-    return pose, _fused_covariance(frames, pose, tolerance, config)
+    return pose, tolerance
 
 
 def _fused_covariance(
-    frames: Sequence[_Frame], pose: np.ndarray, tolerance: Sequence[float], config: RegisterConfig
+    frames: Sequence[_Frame],
+    pose: np.ndarray,
+    tolerance: Sequence[float],
+    seen: Sequence[np.ndarray],
+    config: RegisterConfig,
 ) -> np.ndarray:
     """Returns the covariance of one pose measured by each frame independently: each frame's own fit at
-    ``pose`` (``refine.problem_covariance``) plus its map's floor, their information summed."""
+    ``pose`` (``refine.problem_covariance``, its stretches matched at its ``tolerance``) plus the floor of
+    its map, of which it sees the (K, 6) ``seen``; their information summed."""
     information = np.zeros((6, 6))
-    for frame, tol in zip(frames, tolerance, strict=True):
+    for frame, tol, parts in zip(frames, tolerance, seen, strict=True):
         problem = _frame_problem(frame, pose, tol, 1.0, config)
         if problem is None:
             continue
         fit = problem_covariance(problem, pose, config.refine)
         if not np.isfinite(fit).all():
             continue
-        seen = view_score(frame.view, frame.image, frame.camera, pose, config.score)[1]
-        total = with_map_floor(fit, frame.view.accuracy_m, seen, pose)
+        total = with_map_floor(fit, frame.view.accuracy_m, parts, pose)
         try:
             information += np.linalg.inv(total)
         except np.linalg.LinAlgError:

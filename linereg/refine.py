@@ -100,7 +100,7 @@ def refine_pose(
             return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
         rounds += 1
         try:
-            pose = optimise(problem, pose, config)
+            pose = optimise(problem.graph, pose, config)
         except RuntimeError as e:  # gtsam: indeterminant linear system
             log.debug("refinement failed: %s", e)
             return _unrefined(image, lines3d, camera, cam_from_world, score_config, visible, rounds)
@@ -197,9 +197,17 @@ def _problem(
     """Returns the factor graph of eq. "costs" over (P, 6) fitted points, or None if degenerate."""
     if _degenerate(points, config):
         return None
-    projection = LineProjection.build(coeffs[pairs[:, 0]], points, camera, config.min_depth_m)
+    return line_problem(coeffs[pairs[:, 0]], points, camera, config)
+
+
+def line_problem(
+    lines: np.ndarray, points: np.ndarray, camera: Camera, config: RefineConfig, sigma_px: float = 1.0
+) -> Problem:
+    """Returns the one-factor graph of (P, 6) fitted points on their (P, 3) image lines' coefficients,
+    residuals of ``sigma_px`` under the configured robust kernel."""
+    projection = LineProjection.build(lines, points, camera, config.min_depth_m)
     graph = gtsam.NonlinearFactorGraph()
-    graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(pairs), 1.0, config)))
+    graph.add(line_factor(POSE_KEY, projection, robust_noise(2 * len(points), sigma_px, config)))
     return Problem(graph, projection)
 
 
@@ -223,13 +231,16 @@ def _values(cam_from_world: np.ndarray) -> gtsam.Values:
     return values
 
 
-def optimise(problem: Problem, cam_from_world: np.ndarray, config: RefineConfig) -> np.ndarray:
-    """Returns the (4, 4) cam_from_world minimising the robust cost, by Levenberg-Marquardt."""
+def optimise(
+    graph: gtsam.NonlinearFactorGraph, cam_from_world: np.ndarray, config: RefineConfig
+) -> np.ndarray:
+    """Returns the (4, 4) cam_from_world minimising a graph's robust cost on ``POSE_KEY``, by
+    Levenberg-Marquardt from ``cam_from_world``."""
     params = gtsam.LevenbergMarquardtParams()
     params.setMaxIterations(config.max_iterations)
     params.setRelativeErrorTol(config.relative_error_tol)
     params.setAbsoluteErrorTol(0.0)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(problem.graph, _values(cam_from_world), params)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, _values(cam_from_world), params)
     result = optimizer.optimize().atPose3(POSE_KEY).matrix()
     if not np.isfinite(result).all():
         raise RuntimeError("non-finite pose")

@@ -65,7 +65,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from .. import io
-    from ..calibration import calibrate
+    from ..calibration import calibrate_segments
+    from ..lines2d import detect
     from ..map.linemap import LineMap
 
     check_output_file("--out", args.out)
@@ -82,7 +83,7 @@ def run(args: argparse.Namespace) -> int:
     guess = _read_guess(args.guess, args.guess_sigma)
     cameras = io.read_cameras(args.camera)
     progress = Progress(2 * len(args.frame) + 1, "calibrate")
-    images, maps, cams = [], [], []
+    images, lines, maps, cams = [], [], [], []
     for photo, source in args.frame:
         camera = io.camera_for_image(cameras, photo, f"--camera {args.camera}")
         image = io.read_image(photo)
@@ -92,20 +93,21 @@ def run(args: argparse.Namespace) -> int:
                 f"{camera.width}x{camera.height}"
             )
         images.append(image)
-        cams.append(camera)
+        lines.append(detect(image, camera))  # undistorted pixels: the overlays draw them too
+        cams.append(camera.undistorted())
         progress.update(1, f"read {photo.name}")
         if source.suffix.lower() in MAP_SUFFIXES:
             maps.append(LineMap.load(source))
         else:
             maps.append(LineMap.build(io.read_cloud(source)))
         progress.update(1, f"map of {source.name}")
-    result = calibrate(images, maps, cams, guess)
+    result = calibrate_segments(lines, maps, cams, guess)
     progress.update(1, "done")
     progress.close()
     record = result.to_dict() | {"frames": [[str(p), str(m)] for p, m in args.frame]}
     io.write_json_atomic(args.out, record)
     if args.overlay is not None:
-        _overlays(args, images, maps, cams, result)
+        _overlays(args, images, lines, maps, cams, result)
     verdict = "calibrated" if result.success else f"not claimed: {result.reason}"
     print(f"{verdict}; {len(images)} photos; wrote {args.out}")
     print(_frame_table(args.frame, result))
@@ -149,20 +151,20 @@ def _read_guess(path: Path, sigma: tuple[float, float]):
     return Prior.from_dict(data, source=f"--guess {path}")
 
 
-def _overlays(args: argparse.Namespace, images, maps, cams, result) -> None:
-    """Writes each photo's overlay at the calibrated pose (or the best one found when not claimed)."""
+def _overlays(args: argparse.Namespace, images, lines, maps, cams, result) -> None:
+    """Writes each photo's overlay at the calibrated pose (or the best one found when not claimed): its
+    (undistorted) ``lines`` and its map, ``cams`` undistorted."""
     import numpy as np
 
     from .. import io
-    from ..lines2d import detect
     from ..overlay import draw_overlay
     from ..registration import Registration
 
     args.overlay.mkdir(parents=True, exist_ok=True)
-    for k, ((photo, _), image, line_map, cam) in enumerate(zip(args.frame, images, maps, cams, strict=True)):
+    frames = zip(args.frame, images, lines, maps, cams, strict=True)
+    for k, ((photo, _), image, lines2d, line_map, cam) in enumerate(frames):
         matched = result.frame_matches[k] if k < len(result.frame_matches) else np.zeros((0, 2), np.int64)
         at = Registration(success=True, cam_from_world=result.cam_from_lidar, matches=matched)
         caption = ("calibrated" if result.success else "not claimed (best pose shown)") + f", photo {k}"
-        lines2d = detect(image, cam)  # the segments calibrate found (detection is deterministic)
-        picture = draw_overlay(image, cam.undistorted(), lines2d, line_map.segments, at, caption)
+        picture = draw_overlay(image, cam, lines2d, line_map.segments, at, caption)
         io.write_image_atomic(args.overlay / f"{photo.stem}.png", picture)
