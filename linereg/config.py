@@ -112,6 +112,12 @@ class MapProfileConfig:
     cone_share: float = 0.3  # ... each within this share of the gap between cones of one
     cone_rounds: int = 10  # at most this many moves of the sensor origin to where the cones are sharpest ...
     max_origin_shift_m: float = 1.0  # ... and no farther from where the rings were looked for about
+    # a ring field's sensor origin: fitted to its cones from the frame's origin raised by each of these (m),
+    # in at most this many steps (``rings_from_field``)
+    field_heights_m: tuple[float, ...] = (0.0, 1.0, 2.0)
+    field_rounds: int = 40
+    field_sharp_deg: float = 0.1  # ... the next height tried only when the fit leaves a larger rms error
+    field_reach_m: float = 10.0  # ... the sensor within this of the frame's origin in each axis
     # a region's raster cell is at least this share of the ring gap at its range (the closing bridges one
     # empty cell between rings)
     ring_cell_share: float = 0.6

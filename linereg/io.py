@@ -14,7 +14,7 @@ import tempfile
 import warnings
 from collections.abc import Iterable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -50,10 +50,34 @@ def read_cloud_intensity(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarra
     """Returns ((P, 3) float64 points, (P,) float64 their intensity or None when the file has none) of a
     cloud file (``read_cloud``'s formats): a PLY or PCD ``intensity`` property, LAS intensity, an E57
     ``intensity`` field, the fourth of a text file's four columns (x y z i)."""
-    return _read(Path(path), with_intensity=True)
+    points, intensity, _ = _read(Path(path), with_intensity=True)
+    return points, intensity
 
 
-def _read(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
+# a per-point laser number, as LiDAR drivers name it (Velodyne, Ouster, Hesai, RoboSense: ``ring``)
+RING_FIELDS = ("ring", "laser_id", "laser_number")
+
+
+class CloudFields(NamedTuple):
+    """A cloud file's (P, 3) float64 ``points`` and, where asked for and present, (P,) float64
+    ``intensity`` and (P,) int64 ``rings`` (each point's laser number, -1: none; ``RING_FIELDS``)."""
+
+    points: np.ndarray
+    intensity: np.ndarray | None
+    rings: np.ndarray | None
+
+
+def read_cloud_fields(path: str | os.PathLike, intensity: bool = False, rings: bool = True) -> CloudFields:
+    """Returns a cloud file's CloudFields (``read_cloud``'s formats): the intensity as
+    ``read_cloud_intensity`` reads it, when asked; the rings from a binary or ASCII PLY's, a PCD's or a
+    LAS extra dimension's ``ring`` (or ``laser_id``, ``laser_number``) property, when asked and present
+    (None: the file has none; E57 and text files hold none)."""
+    return CloudFields(*_read(Path(path), with_intensity=intensity, with_rings=rings))
+
+
+def _read(
+    path: Path, with_intensity: bool, with_rings: bool = False
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     suffix = path.suffix.lower()
     if suffix not in CLOUD_SUFFIXES:
         raise FileFormatError(
@@ -64,6 +88,7 @@ def _read(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | No
     reader = reader or {".las": _read_las, ".laz": _read_las, ".e57": _read_e57}[suffix]
     try:
         points, intensity = reader(path, with_intensity)
+        rings = _read_rings(path) if with_rings else None
     except FileFormatError:
         raise
     except Exception as e:  # each library has its own exceptions for a corrupt file
@@ -73,6 +98,10 @@ def _read(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | No
         intensity = np.asarray(intensity, dtype=np.float64).reshape(-1)
         if len(intensity) != len(points):
             raise FileFormatError(f"{path}: {len(intensity)} intensities for {len(points)} points")
+    if rings is not None:
+        rings = np.asarray(rings).reshape(-1)
+        if len(rings) != len(points):
+            raise FileFormatError(f"{path}: {len(rings)} ring values for {len(points)} points")
     if len(points) == 0:
         raise FileFormatError(f"{path}: the point cloud holds no points (empty or corrupt file)")
     finite = np.isfinite(points).all(axis=1)
@@ -80,8 +109,69 @@ def _read(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | No
         logger.warning("%s: dropped %d points with NaN or inf coordinates", path, int((~finite).sum()))
         points = points[finite]
         intensity = None if intensity is None else intensity[finite]
+        rings = None if rings is None else rings[finite]
+    if rings is not None:
+        from .map.build import laser_numbers
+
+        try:
+            rings = laser_numbers(rings, len(points))
+        except InvalidInputError as e:
+            raise FileFormatError(f"{path}: its ring field: {e}") from None
     logger.info("%s: %d points", path, len(points))
-    return points, intensity
+    return points, intensity, rings
+
+
+def _read_rings(path: Path) -> np.ndarray | None:
+    """Returns a cloud file's per-point laser numbers (``RING_FIELDS``; the first present), None if none."""
+    suffix = path.suffix.lower()
+    if suffix == ".ply":
+        layout = _ply_layout(path)
+        if layout is not None:  # binary: open3d's reader skips ushort properties, a ring's usual type
+            dtype, offset, count = layout
+            name = next((n for n in RING_FIELDS if n in (dtype.names or ())), None)
+            rows = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
+            return None if name is None else np.array(rows[name])
+        return _ascii_ply_rings(path)
+    if suffix == ".pcd":
+        from ._open3d import open3d
+
+        attributes = open3d().t.io.read_point_cloud(str(path), remove_nan_points=False).point
+        name = next((n for n in RING_FIELDS if n in attributes), None)
+        return None if name is None else attributes[name].numpy().reshape(-1)
+    if suffix in (".las", ".laz"):
+        import laspy
+
+        las = laspy.read(path)
+        names = {n.lower(): n for n in las.point_format.dimension_names}
+        name = next((names[n] for n in RING_FIELDS if n in names), None)
+        return None if name is None else np.asarray(las[name])
+    return None
+
+
+def _ascii_ply_rings(path: Path) -> np.ndarray | None:
+    """Returns the ring property of an ASCII PLY whose first element is its vertices, None if it has none."""
+    with open(path, "rb") as f:
+        words: list[list[str]] = []
+        while not words or words[-1] != ["end_header"]:
+            line = f.readline()
+            if not line:
+                return None
+            words.append(line.decode("ascii", "replace").split())
+        if len(words) < 2 or words[1][:2] != ["format", "ascii"]:
+            return None
+        elements = [w for w in words if w[:1] == ["element"]]
+        if not elements or elements[0][1] != "vertex":
+            return None
+        props = []
+        for w in words[words.index(elements[0]) + 1 :]:
+            if w[:1] != ["property"] or w[1] == "list":
+                break
+            props.append(w[-1])
+        name = next((n for n in RING_FIELDS if n in props), None)
+        if name is None:
+            return None
+        rows = np.loadtxt(f, max_rows=int(elements[0][2]), usecols=props.index(name), ndmin=1)
+    return rows
 
 
 def read_sensor_origin(path: str | os.PathLike) -> np.ndarray | None:
@@ -147,6 +237,17 @@ def _read_open3d(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarr
 
     o3d = open3d()
     expected = _ply_vertex_count(path) if path.suffix.lower() == ".ply" else None
+    layout = _ply_layout(path) if expected is not None else None
+    if layout is not None and set(RING_FIELDS) & set(layout[0].names or ()):
+        # open3d skips a ushort ring with a warning; ``_read_rings`` reads it
+        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
+            return _read_open3d_as_is(o3d, path, with_intensity, expected)
+    return _read_open3d_as_is(o3d, path, with_intensity, expected)
+
+
+def _read_open3d_as_is(
+    o3d: Any, path: Path, with_intensity: bool, expected: int | None
+) -> tuple[np.ndarray, np.ndarray | None]:
     # open3d reports a corrupt file on stderr and returns an empty or partial cloud: checked here and by the caller
     intensity = None
     if with_intensity:  # the tensor reader keeps every property (the legacy cloud holds no intensity)

@@ -40,8 +40,10 @@ SCANNED_RADIUS_M = 0.15  # the scan's point spacing reaches ~13 cm at 30 m (0.25
 _CHILD = "import sys; from linereg.bench.lines3d import child_main; child_main(sys.argv[1], sys.argv[2], *sys.argv[3:])"
 
 
-def child_main(points_path: str, map_path: str, overrides: str = "{}", intensity_path: str = "") -> None:
-    """Runs ``LineMap.build`` on the points of an .npy file (and their intensities, another .npy, if given)
+def child_main(
+    points_path: str, map_path: str, overrides: str = "{}", intensity_path: str = "", rings_path: str = ""
+) -> None:
+    """Runs ``LineMap.build`` on the points of an .npy file (their intensities and rings, more .npy, if given)
     with MapBuildConfig fields overridden by a JSON object (nested per section); prints JSON (seconds, RSS
     KiB), saves the map. The clock starts after a small generated room is built (``warm.warm_up_map``): what a
     process pays once (imports, compiled kernels loaded from numba's cache) is reported on its own."""
@@ -54,13 +56,14 @@ def child_main(points_path: str, map_path: str, overrides: str = "{}", intensity
 
     points = np.load(points_path)
     intensity = np.load(intensity_path) if intensity_path else None
+    rings = np.load(rings_path) if rings_path else None
     config = MapBuildConfig.from_dict(json.loads(overrides))
     start = time.perf_counter()
     warm_up_map(config)
     warm = time.perf_counter() - start
     before = resource.getrusage(resource.RUSAGE_SELF)
     start = time.perf_counter()
-    line_map = LineMap.build(points, config, intensity=intensity)
+    line_map = LineMap.build(points, config, intensity=intensity, rings=rings)
     seconds = time.perf_counter() - start
     after = resource.getrusage(resource.RUSAGE_SELF)
     cpu = after.ru_utime + after.ru_stime - before.ru_utime - before.ru_stime
@@ -71,21 +74,26 @@ def child_main(points_path: str, map_path: str, overrides: str = "{}", intensity
 
 
 def build_in_child(
-    points: np.ndarray, overrides: dict[str, Any] | None = None, intensity: np.ndarray | None = None
+    points: np.ndarray,
+    overrides: dict[str, Any] | None = None,
+    intensity: np.ndarray | None = None,
+    rings: np.ndarray | None = None,
 ) -> tuple[Any, dict[str, Any]]:
     """Returns (LineMap, {seconds, cpu_seconds, warm_seconds, rss_before_gb, peak_gb}) of ``LineMap.build``
     (``warm_seconds``: the child's start before it, ``child_main``) in a child
-    process, with MapBuildConfig fields ``overrides`` (nested per section) and the points' ``intensity``."""
+    process, with MapBuildConfig fields ``overrides`` (nested per section) and the points' ``intensity`` and
+    ``rings`` (a file's ring field)."""
     from ..errors import LineregError
     from ..map.linemap import LineMap
 
     with tempfile.TemporaryDirectory(prefix="linereg-bench-") as tmp:
         points_path, map_path = Path(tmp) / "points.npy", Path(tmp) / "map.npz"
         np.save(points_path, points)
-        extra = []
-        if intensity is not None:
-            extra = [str(Path(tmp) / "intensity.npy")]
-            np.save(extra[0], intensity)
+        extra = ["", ""]
+        for k, values in enumerate((intensity, rings)):
+            if values is not None:
+                extra[k] = str(Path(tmp) / f"field{k}.npy")
+                np.save(extra[k], values)
         proc = subprocess.run(
             [
                 sys.executable,

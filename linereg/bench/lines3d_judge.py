@@ -160,16 +160,22 @@ def judge(
 
 
 def ceiling(
-    image: np.ndarray, cloud: np.ndarray, camera: Camera, cam_from_world: np.ndarray
+    image: np.ndarray,
+    cloud: np.ndarray,
+    camera: Camera,
+    cam_from_world: np.ndarray,
+    profile: dict[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Returns {ceiling, covered, edge_mask}: the share of the (N, 4) image segments' length within
     DISTANCE_PX of a depth discontinuity or crease of the (P, 3) cloud rendered at the pose, the share
-    lying where the cloud covers the image, and the (H, W) bool edge mask."""
+    lying where the cloud covers the image, and the (H, W) bool edge mask. ``profile``: the cloud's
+    (``CloudProfile.as_dict``, its map's: rings a file's ring field gave; None: profiled here)."""
     from ..map.profile import profile_cloud
 
-    profile = profile_cloud(cloud)
-    noise_m = profile.noise_m
-    depth, points, normals = render(cloud, camera, cam_from_world, profile.ring_gap_deg)
+    if profile is None:
+        profile = profile_cloud(cloud).as_dict()
+    noise_m = float(profile["noise_m"])
+    depth, points, normals = render(cloud, camera, cam_from_world, float(profile["ring_gap_deg"]))
     h, w = depth.shape
     valid = np.isfinite(depth)
     edge = np.zeros((h, w), dtype=bool)

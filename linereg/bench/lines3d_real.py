@@ -39,11 +39,9 @@ def run_scene(folder: Path, overrides: dict[str, Any], overlay_dir: Path | None)
             print(
                 f"{folder.name}: building the map of {item.cloud_path.name} ...", file=sys.stderr, flush=True
             )
-            if overrides.get("intensity_edges"):
-                cloud, intensity = io.read_cloud_intensity(item.cloud_path)
-            else:
-                cloud, intensity = io.read_cloud(item.cloud_path), None
-            line_map, cost = build_in_child(cloud, overrides, intensity)
+            fields = io.read_cloud_fields(item.cloud_path, intensity=bool(overrides.get("intensity_edges")))
+            cloud = fields.points
+            line_map, cost = build_in_child(cloud, overrides, fields.intensity, fields.rings)
             maps[item.cloud_path] = (line_map, cost | {"points": len(cloud)}, cloud)
         line_map, cost, cloud = maps[item.cloud_path]
         camera = item.camera.undistorted()
@@ -52,7 +50,7 @@ def run_scene(folder: Path, overrides: dict[str, Any], overlay_dir: Path | None)
         min_px = LineDetectConfig().min_length_frac * math.hypot(camera.width, camera.height)
         parts, rows = line_map.visible_parts(camera, item.cam_from_world)
         result = judge_mod.judge(lines2d, parts, rows, line_map.kinds, camera, item.cam_from_world, min_px)
-        top = judge_mod.ceiling(lines2d, cloud, camera, item.cam_from_world)
+        top = judge_mod.ceiling(lines2d, cloud, camera, item.cam_from_world, line_map.metadata.get("profile"))
         record = {k: v for k, v in result.items() if not k.startswith("_")}
         record["by_kind"] = {map_kinds.NAMES[k]: v for k, v in record["by_kind"].items()}
         record |= {"image": item.image_path.name, "map": item.cloud_path.name}

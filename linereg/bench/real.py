@@ -215,11 +215,9 @@ def build_map(
     from ..map.linemap import LineMap
 
     start = time.perf_counter()
-    points, intensity = (
-        io.read_cloud_intensity(cloud_path) if intensity_edges else (io.read_cloud(cloud_path), None)
-    )
+    points, intensity, rings = io.read_cloud_fields(cloud_path, intensity=intensity_edges)
     config = MapBuildConfig(lines3d=lines3d_config(map_config, points), intensity_edges=intensity_edges)
-    line_map = LineMap.build(points, config, intensity=intensity)
+    line_map = LineMap.build(points, config, intensity=intensity, rings=rings)
     if plane_directions:
         line_map = with_plane_directions(line_map, points)
     record = {

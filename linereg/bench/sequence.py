@@ -172,7 +172,8 @@ def real_problem(folder: Path) -> dict[str, Any]:
         height=c["height"],
         dist=tuple(c["distortion"]["coeffs"]),
     )
-    line_map = LineMap.build(io.read_cloud(folder / "cloud.ply"))
+    cloud = io.read_cloud_fields(folder / "cloud.ply")
+    line_map = LineMap.build(cloud.points, rings=cloud.rings)
     frames = [io.read_image(folder / "sequence" / f["file"]) for f in meta["frames"]]
     truth = np.array([f["T_cam_from_world"] for f in meta["frames"]], dtype=np.float64)
     times = np.array([f["timestamp"] for f in meta["frames"]], dtype=np.float64)

@@ -99,7 +99,9 @@ def run(args: argparse.Namespace) -> int:
         if source.suffix.lower() in MAP_SUFFIXES:
             maps.append(LineMap.load(source))
         else:
-            maps.append(LineMap.build(io.read_cloud(source)))
+            cloud = io.read_cloud_fields(source)  # a sweep's ring field, if it has one
+            origin = io.read_sensor_origin(source)
+            maps.append(LineMap.build(cloud.points, sensor_origin=origin, rings=cloud.rings))
         progress.update(1, f"map of {source.name}")
     result = calibrate_segments(lines, maps, cams, guess)
     progress.update(1, "done")

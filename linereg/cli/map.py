@@ -3,6 +3,7 @@
 Examples:
   linereg map build scan.e57 -o site.linemap --name site   # clouds: .ply .pcd .xyz .txt .las .laz .e57
   linereg map build sweep.pcd -o street.linemap --intensity-edges   # + road markings of a LiDAR sweep
+  (a sweep's per-point ring field, PLY / PCD / LAS ``ring``, gives its rings and, in any frame, its sensor)
   linereg map info site.linemap
 """
 
@@ -68,7 +69,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def run_build(args: argparse.Namespace) -> int:
     from ..config import Lines3DConfig, MapBuildConfig
     from ..errors import InvalidInputError
-    from ..io import read_cloud, read_cloud_intensity, read_sensor_origin
+    from ..io import read_cloud_fields, read_sensor_origin
     from ..map.linemap import LineMap
 
     if args.voxel < 0 or (args.plane_voxel is not None and args.plane_voxel <= 0):
@@ -80,10 +81,8 @@ def run_build(args: argparse.Namespace) -> int:
     with Progress(len(STAGES), "map build", log_steps=True) as progress:
         progress.update(0, "read")
         start = time.perf_counter()
-        # the intensity only when asked: reading it reads a PLY or PCD a second time
-        points, intensity = (
-            read_cloud_intensity(args.cloud) if args.intensity_edges else (read_cloud(args.cloud), None)
-        )
+        # the intensity only when asked (reading it reads a PLY or PCD a second time); a ring field always
+        points, intensity, rings = read_cloud_fields(args.cloud, intensity=args.intensity_edges)
         origin = args.sensor_origin if args.sensor_origin is not None else read_sensor_origin(args.cloud)
         line_map = LineMap.build(
             points,
@@ -92,6 +91,7 @@ def run_build(args: argparse.Namespace) -> int:
             progress=lambda stage: progress.update(1, stage),
             sensor_origin=None if origin is None else np.asarray(origin, dtype=np.float64),
             intensity=intensity,
+            rings=rings,
             source=str(args.cloud),
         )
         progress.update(1, "write")
@@ -153,6 +153,8 @@ def _profile_line(profile: dict[str, Any]) -> str:
         words.append(f"noise {1000 * profile['noise_m']:.1f} mm")
     if profile.get("rings"):
         words.append(f"{profile['rings']} rings {profile.get('ring_gap_deg', 0.0):.2f} deg apart")
+        if profile.get("ring_source") == "field":
+            words[-1] += " (the file's ring field)"
     if profile.get("sensor_origin") is not None:
         words.append("sensor at (" + ", ".join(f"{v:.2f}" for v in profile["sensor_origin"]) + ")")
     return ", ".join(words)

@@ -65,12 +65,14 @@ def extract_map(
     sensor_origin: np.ndarray | None = None,
     progress: Callable[[str], None] | None = None,
     intensity: np.ndarray | None = None,
+    rings: np.ndarray | None = None,
 ) -> MapContent:
     """Returns the MapContent of (P, 3) float64 points (their frame); ``sensor_origin`` (3,): where the
     scanner stood, if known (a single sweep in its sensor's frame has it at the origin: found by its
     rings); ``intensity`` (P,): each point's return intensity, if the cloud has one (used only with
-    ``config.intensity_edges``; NaN: none). ``progress(stage)`` is called as the stages profile, normals,
-    regions, lines start."""
+    ``config.intensity_edges``; NaN: none); ``rings`` (P,): each point's laser number, if the file says
+    (a driver's ``ring`` field; negative or NaN: none; ``profile.rings_from_field``). ``progress(stage)`` is
+    called as the stages profile, normals, regions, lines start."""
     config = config or MapBuildConfig()
     points = check_points(points)
     if intensity is not None:
@@ -79,13 +81,15 @@ def extract_map(
             raise InvalidInputError(
                 f"intensity must hold one value per point: {len(intensity)} for {len(points)} points"
             )
+    if rings is not None:
+        rings = laser_numbers(rings, len(points))
     if sensor_origin is not None:
         sensor_origin = np.asarray(sensor_origin, dtype=np.float64).reshape(3)
         if not np.isfinite(sensor_origin).all():
             raise InvalidInputError(f"sensor_origin must be finite, got {sensor_origin}")
     if progress:
         progress("profile")
-    profile, ring = profile_and_rings(points, sensor_origin, config.profile)
+    profile, ring = profile_and_rings(points, sensor_origin, config.profile, rings)
     repeated = 0
     if len(points) > 1 and profile.spacing_p10_m == 0.0:
         # a tenth of the points sampled have an exact twin (an export repeating its points, a merge of
@@ -96,8 +100,9 @@ def extract_map(
         repeated = len(points) - len(keep)
         points = points[keep]
         intensity = None if intensity is None else intensity[keep]
+        rings = None if rings is None else rings[keep]
         logger.info("%d repeated points dropped (exact copies of earlier ones)", repeated)
-        profile, ring = profile_and_rings(points, sensor_origin, config.profile)
+        profile, ring = profile_and_rings(points, sensor_origin, config.profile, rings)
     lines_config = adapted_config(profile, config.lines3d, config.profile) if config.adapt else config.lines3d
     if len(points) == 0:
         return _empty(profile, lines_config, "the cloud holds no points")
@@ -114,6 +119,11 @@ def extract_map(
         run = pool.submit if thread_count(2) > 1 else _now
         sensed = None
         notes: tuple[str, ...] = ()
+        if rings is not None and profile.ring_source != "field":
+            notes += (
+                "ring field: its lasers are not one spinning sensor's cones about one axis "
+                + (f"(rings found by {profile.ring_source} instead)" if profile.rings else "(no rings used)"),
+            )
         with_intensity = config.intensity_edges and intensity is not None
         if config.intensity_edges and not with_intensity:
             notes += ("intensity edges: the cloud has no intensity",)
@@ -160,6 +170,26 @@ def extract_map(
         segments + np.tile(offset, 2), kind, surfaces, profile, lines_config, reason, planes.normals, areas,
         notes, repeated,
     )  # fmt: skip
+
+
+def laser_numbers(rings: object, count: int) -> np.ndarray:
+    """Returns (count,) int64 laser numbers of a ring field (NaN and negative values -1: none), or raises
+    InvalidInputError naming ``rings`` (a value per point, whole numbers)."""
+    values = np.asarray(rings)
+    if values.ndim != 1 or len(values) != count:
+        raise InvalidInputError(
+            f"rings must hold one laser number per point: shape {values.shape} for {count} points"
+        )
+    if not (np.issubdtype(values.dtype, np.integer) or np.issubdtype(values.dtype, np.floating)):
+        raise InvalidInputError(f"rings must be laser numbers, got values of type {values.dtype}")
+    values = values.astype(np.float64)
+    finite = np.isfinite(values)
+    if (values[finite] != np.round(values[finite])).any():
+        raise InvalidInputError("rings must be whole laser numbers, got fractions")
+    out = np.full(count, -1, dtype=np.int64)
+    laser = finite & (np.where(finite, values, -1.0) >= 0)
+    out[laser] = values[laser].astype(np.int64)
+    return out
 
 
 def distinct_points(points: np.ndarray) -> np.ndarray:

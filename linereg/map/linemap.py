@@ -93,13 +93,16 @@ class LineMap:
         progress: Callable[[str], None] | None = None,
         sensor_origin: np.ndarray | None = None,
         intensity: np.ndarray | None = None,
+        rings: np.ndarray | None = None,
         **metadata: Any,
     ) -> LineMap:
         """Returns the map of (P, 3) float64 points (``build.extract_map``: parameters from the cloud's
         profile, segments with their kinds, surfaces), then clusters. A ``Lines3DConfig`` is the base whose
         default-valued fields the profile chooses. ``sensor_origin`` (3,): where the scanner stood, if
         known. ``intensity`` (P,): each point's return intensity, for ``MapBuildConfig.intensity_edges``
-        (``io.read_cloud_intensity`` reads it). ``progress(stage)`` is called as stages start (profile,
+        (``io.read_cloud_intensity`` reads it). ``rings`` (P,): each point's laser number where the file
+        gives one (``io.read_cloud_fields``): a single sweep's rings, and its sensor found from them even in a
+        vehicle's frame (``map.profile.rings_from_field``). ``progress(stage)`` is called as stages start (profile,
         normals, regions, lines, clusters). An empty map says why in ``metadata["empty_reason"]``; what was
         asked for and could not be done is in ``metadata["notes"]``; how many points were dropped as exact
         copies of earlier ones in ``metadata["repeated_points"]`` (when a tenth of them have a twin).
@@ -109,7 +112,7 @@ class LineMap:
         if isinstance(config, Lines3DConfig):
             config = MapBuildConfig(lines3d=config)
         config = config or MapBuildConfig()
-        content = extract_map(points, config, sensor_origin, progress, intensity)
+        content = extract_map(points, config, sensor_origin, progress, intensity, rings)
         extra: dict[str, Any] = {
             "point_count": content.profile.num_points,
             "profile": content.profile.as_dict(),

@@ -195,6 +195,129 @@ def _laser_cones(
     return np.where(kept, label[nearest], -1).astype(np.int64), origin
 
 
+def rings_from_field(
+    points: np.ndarray,
+    field: np.ndarray,
+    origin: np.ndarray,
+    fit_origin: bool,
+    config: MapProfileConfig | None = None,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """Returns ((P,) int64 ring of each point, -1 for none, numbered by elevation from the lowest; (3,) the
+    sensor origin) of a sweep whose (P,) ``field`` gives each point's laser (negative: none), or None.
+
+    A file's ring field says which laser fired, not where the sensor was: a sweep stored in a vehicle's
+    frame has its lasers metres from the frame's origin, where no elevation is constant along a ring.
+    Each laser sweeps one cone about the sensor, so with ``fit_origin`` the origin and the lean of the
+    sensor's axis (a vehicle's frame is seldom level with it: nuScenes' by 0.75 deg) are fitted
+    (least squares on a sample of the returns, from ``origin`` and from above it, each ring's cone
+    elevation estimated with them) where every ring's returns beyond a metre share one elevation, and the rings are
+    kept when ``elevation_peak_share`` of those returns lie within ``cone_share`` of the median gap between
+    the cones of their own: a field of something else (a return number, a grid's column) has no such cones,
+    nor has a sensor whose lasers fit no single apex (KITTI's HDL-64 sweeps, to no better than half their
+    ring gap), whose rings are then looked for as without a field. Without ``fit_origin`` the caller gave the sensor's position and the
+    field is taken as it is. Either way at least ``min_rings`` lasers of ``min_ring_points`` returns."""
+    config = config or MapProfileConfig()
+    field = np.asarray(field).reshape(-1)
+    usable = field >= 0
+    values, raw = np.unique(field[usable], return_inverse=True)
+    counts = np.bincount(raw, minlength=len(values))
+    large = counts >= config.min_ring_points
+    if not config.min_rings <= int(large.sum()) <= config.max_rings:
+        return None
+    label = np.full(len(points), -1, dtype=np.int64)
+    label[np.flatnonzero(usable)[large[raw]]] = (np.cumsum(large) - 1)[raw[large[raw]]]
+    n = int(large.sum())
+    origin = np.asarray(origin, dtype=np.float64).reshape(3)
+    if fit_origin:
+        # from the frame's origin and above it (a vehicle's frame lies at the road or an axle, its lasers
+        # a metre or two up: from the road every ground ring keeps one elevation, a false fit), the best
+        starts = [origin + np.array([0.0, 0.0, h]) for h in config.field_heights_m]
+        labelled = np.flatnonzero(label >= 0)  # fitted on a sample, judged on all below
+        pick = np.random.default_rng(0).choice(
+            labelled, min(config.spacing_sample, len(labelled)), replace=False
+        )
+        sample, at = points[pick], label[pick]
+        fits: list[tuple[np.ndarray, float]] = []
+        for start in starts:
+            fits.append(_fit_cone_origin(sample, at, n, start, config.field_rounds, config.field_reach_m))
+            if fits[-1][1] <= np.radians(config.field_sharp_deg) ** 2:
+                break  # sharp already: the lasers' own scatter
+        pose = min(fits, key=lambda f: f[1])[0]
+    else:
+        pose = np.r_[origin, 0.0, 0.0]
+    origin = pose[:3]
+    fit = _cones(points, label, n, pose)
+    if fit is None or (fit[2] > 0).sum() < config.min_rings:
+        return None
+    cones, error, per = fit[0], fit[1], fit[2]
+    seen = per > 0
+    order = np.argsort(cones[seen])
+    gap = float(np.median(np.diff(cones[seen][order])))
+    if gap <= 0.0:
+        return None
+    if fit_origin and (np.abs(error) <= config.cone_share * gap).mean() < config.elevation_peak_share:
+        return None
+    rank = np.full(n, -1, dtype=np.int64)
+    rank[np.flatnonzero(seen)[order]] = np.arange(int(seen.sum()))
+    ring = np.where(label >= 0, rank[np.maximum(label, 0)], -1)
+    return ring, origin
+
+
+def _cones(
+    points: np.ndarray, label: np.ndarray, n: int, pose: np.ndarray
+) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Returns ((n,) each ring's mean elevation (rad), (k,) the elevation errors of the labelled points
+    beyond a metre, (n,) their count per ring) about a sensor at ``pose[:3]`` whose axis leans by the small
+    angles ``pose[3:5]`` (rad, about x then y); None with no point beyond a metre."""
+    rel = points - pose[:3]
+    if pose[3] or pose[4]:
+        ca, sa, cb, sb = np.cos(pose[3]), np.sin(pose[3]), np.cos(pose[4]), np.sin(pose[4])
+        tilt = np.array([[1.0, 0, 0], [0, ca, -sa], [0, sa, ca]]) @ np.array(
+            [[cb, 0, sb], [0, 1.0, 0], [-sb, 0, cb]]
+        )
+        rel = rel @ tilt
+    distance = np.linalg.norm(rel, axis=1)
+    use = (label >= 0) & (distance > 1.0)  # within a metre the housing's own spread blurs them
+    if not use.any():
+        return None
+    lab = label[use]
+    per = np.bincount(lab, minlength=n)
+    elevation = np.arctan2(rel[use, 2], np.hypot(rel[use, 0], rel[use, 1]))
+    cones = np.bincount(lab, elevation, minlength=n) / np.maximum(per, 1)
+    return cones, elevation - cones[lab], per
+
+
+def _fit_cone_origin(
+    points: np.ndarray, label: np.ndarray, n: int, origin: np.ndarray, rounds: int, reach_m: float
+) -> tuple[np.ndarray, float]:
+    """Returns ((5,) the sensor's position, within ``reach_m`` of ``origin`` in each axis, and its axis's
+    lean (``_cones``) about which the labelled rings' elevations are most nearly constant, found by least
+    squares (trust region) from ``origin`` and a level axis in at most ``rounds`` x 6 evaluations; the mean
+    squared elevation error there, inf when none)."""
+    from scipy.optimize import least_squares
+
+    def errors(pose: np.ndarray) -> np.ndarray:
+        fit = _cones(points, label, n, pose)
+        # a pose leaving every point within a metre is no fit: errors of a right angle
+        return np.full(len(points), np.pi / 2) if fit is None else np.resize(fit[1], len(points))
+
+    start = np.r_[np.asarray(origin, dtype=np.float64).reshape(3), 0.0, 0.0]
+    # bounded: a sensor ever farther away sees every return at one elevation (a false, perfect fit)
+    reach = np.r_[np.full(3, reach_m), np.full(2, np.radians(30.0))]
+    try:
+        found = least_squares(
+            errors,
+            start,
+            bounds=(start - reach, start + reach),
+            max_nfev=6 * rounds,
+            x_scale=[1, 1, 1, 0.01, 0.01],
+        )
+    except (ValueError, np.linalg.LinAlgError):
+        return start, np.inf
+    fit = _cones(points, label, n, found.x)
+    return found.x, np.inf if fit is None else float(np.mean(fit[1] ** 2))
+
+
 def _nearest(values: np.ndarray, sorted_values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Returns ((N,) index of the nearest of the ascending (K >= 2,) ``sorted_values`` to each value, (N,)
     value minus it)."""
@@ -266,33 +389,42 @@ def profile_cloud(
 
 
 def profile_and_rings(
-    points: np.ndarray, sensor_origin: np.ndarray | None = None, config: MapProfileConfig | None = None
+    points: np.ndarray,
+    sensor_origin: np.ndarray | None = None,
+    config: MapProfileConfig | None = None,
+    rings: np.ndarray | None = None,
 ) -> tuple[CloudProfile, np.ndarray]:
     """Returns (``profile_cloud``'s CloudProfile, (P,) int64 ring of each point, -1 for none: all -1 when
-    the profile has no rings), so that a map build finds the rings once."""
+    the profile has no rings), so that a map build finds the rings once. ``rings`` (P,) int: each point's
+    laser number as the file gives it (a driver's ``ring`` field; -1: none), used when they are one
+    sensor's cones (``rings_from_field``: source "field"), else the rings are looked for as without."""
     config = config or MapProfileConfig()
     points = check_points(points)
     if len(points) == 0:
         return CloudProfile("empty", 0, 0.0, 0.0, 0.0, 0.0, 0.0, 0, 0.0, "", None), np.zeros(0, np.int64)
     origin = np.zeros(3) if sensor_origin is None else np.asarray(sensor_origin, dtype=np.float64).reshape(3)
     spacing, p10, p90, spread, noise = _spacing(points, config)
-    ring, source, found = scan_rings(points, origin, config)
-    rings = int(ring.max()) + 1 if source else 0
-    gap = ring_gap_deg(points, ring, found) if rings else 0.0
+    given = None if rings is None else rings_from_field(points, rings, origin, sensor_origin is None, config)
+    if given is not None:
+        ring, source, found = given[0], "field", given[1]
+    else:
+        ring, source, found = scan_rings(points, origin, config)
+    count = int(ring.max()) + 1 if source else 0
+    gap = ring_gap_deg(points, ring, found) if count else 0.0
     if gap <= 0.0:  # runs of points at one elevation (a grid's rows) are no laser rings
-        rings, source = 0, ""
+        count, source = 0, ""
         ring = np.full(len(points), -1, dtype=np.int64)
-    if rings:
+    if count:
         kind = "lidar_sweep"
     elif spread > config.uneven_ratio:
         kind = "scan"
     else:
         kind = "rgbd" if spacing <= config.dense_spacing_m else "map"
-    known = rings > 0 or sensor_origin is not None
-    at = found if rings else origin
+    known = count > 0 or sensor_origin is not None
+    at = found if count else origin
     origin_out = (float(at[0]), float(at[1]), float(at[2])) if known else None
     profile = CloudProfile(
-        kind, len(points), spacing, p10, p90, spread, noise, rings, gap, source, origin_out
+        kind, len(points), spacing, p10, p90, spread, noise, count, gap, source, origin_out
     )
     return profile, ring
 
