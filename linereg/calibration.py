@@ -17,7 +17,9 @@ extrinsic is the one pose that explains every photo at once, so the evidence of 
 3. the answer is the refined pose of the highest summed score, claimed only when at least two frames are
    explained at it as a single photo's decision asks (``min_inliers`` matches, the floor of the line length
    its map covers, significance against chance), every distinct pose found scores below ``1 - margin`` of
-   it, and its covariance pins it closer than distinct poses lie (``pipeline.undetermined``).
+   it or leaves unexplained what the answer explains beyond chance while explaining nothing beyond it
+   that chance would not (the single photo's advantage test, each photo's chance combined by Fisher's
+   rule: ``_rival``), and its covariance pins it closer than distinct poses lie (``pipeline.undetermined``).
 
 The covariance fuses the frames' own: each frame's fit at the answer plus its map's floor
 (``pipeline.with_map_floor``), combined as independent measurements of one pose (information summed),
@@ -48,6 +50,7 @@ from .localization import map_view, seen_from_prior
 from .map.linemap import LineMap
 from .pipeline import (
     MapView,
+    advantage_nfa,
     differs,
     explains_too_little,
     log10_nfa,
@@ -70,7 +73,7 @@ from .refine import (
 from .registration import Registration, check_segments
 from .score import ImageLines, Score, coverable_length, image_lines, score_pose
 from .search import solve_all
-from .significance import SearchSpace, depth_of
+from .significance import SearchSpace, depth_of, log10_fisher
 from .timing import StageTimer
 
 __all__ = ["Calibration", "calibrate", "calibrate_segments"]
@@ -215,14 +218,8 @@ def _calibrate_undistorted(
     config = config or RegisterConfig()
     timings: dict[str, float] = {}
     start = time.perf_counter()
-    frames: list[_Frame] = []
-    singles: list[Registration] = []
-    for segments, line_map, cam in zip(lines2d, maps, cameras, strict=True):
-        rows = seen_from_prior(line_map, cam, guess, config)
-        view = map_view(line_map, rows, config)
-        image = image_lines(segments, cam, config.score)
-        frames.append(_Frame(segments, cam, view, image, rows, line_coefficients(image.segments)))
-        singles.append(_alone(frames[-1], guess, config))
+    frames = _frames(lines2d, maps, cameras, guess, config)
+    singles = [_alone(frame, guess, config) for frame in frames]
     timings["alone"] = time.perf_counter() - start
     start = time.perf_counter()
     candidates, rotations = _candidates(frames, singles, guess, config)
@@ -251,6 +248,23 @@ def _calibrate_undistorted(
     return replace(
         _decide(frames, refined, everything, space, config), singles=tuple(singles), timings=timings
     )
+
+
+def _frames(
+    lines2d: Sequence[np.ndarray],
+    maps: Sequence[LineMap],
+    cameras: Sequence[Camera],
+    guess: Prior,
+    config: RegisterConfig,
+) -> list[_Frame]:
+    """Returns each photo's _Frame: its lines, camera, the view of its map near the guess."""
+    frames = []
+    for segments, line_map, cam in zip(lines2d, maps, cameras, strict=True):
+        rows = seen_from_prior(line_map, cam, guess, config)
+        view = map_view(line_map, rows, config)
+        image = image_lines(segments, cam, config.score)
+        frames.append(_Frame(segments, cam, view, image, rows, line_coefficients(image.segments)))
+    return frames
 
 
 def _alone(frame: _Frame, guess: Prior, config: RegisterConfig) -> Registration:
@@ -293,8 +307,8 @@ def _decide(
 ) -> Calibration:
     """Returns the Calibration of the best of the jointly refined (pose, frames' tolerances, summed
     score), best first: claimed when two frames are explained at it (``_unexplained``), no distinct pose scores
-    within the margin, and its covariance with the spread of the non-distinct basins within the margin
-    pins it (``pipeline.undetermined``)."""
+    within the margin without the best holding evidence it lacks (``_rival``), and its covariance with the
+    spread of the non-distinct basins within the margin pins it (``pipeline.undetermined``)."""
     dc = config.decide
     pose, tolerance, value = refined[0]
     seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
@@ -320,14 +334,8 @@ def _decide(
     elif explained < 2:
         why = next(v for v in verdicts if v)
         reason = f"{explained} of {len(frames)} photos are explained at the best pose, a calibration needs two ({why})"
-    elif distinct and distinct[0][0] >= (1.0 - dc.margin) * value:
-        other = distinct[0][1]
-        turn = rotation_error_deg(other[:3, :3], pose[:3, :3])
-        shift = float(np.linalg.norm(camera_center(other) - camera_center(pose)))
-        reason = (
-            f"ambiguous: a distinct pose ({turn:.1f} deg, {shift:.2f} m away) scores "
-            f"{100 * distinct[0][0] / value:.0f} % of the best over the {len(frames)} photos"
-        )
+    elif rival := _rival(frames, pose, seen, value, distinct, config, space):
+        reason = rival
     elif not np.isfinite(covariance).all():
         reason = "the photos' lines do not fix every degree of freedom of the pose (a degenerate fit)"
     else:
@@ -348,6 +356,63 @@ def _decide(
         alternatives=np.array([T for _, T in distinct[:8]]).reshape(-1, 4, 4),
         alternative_scores=np.array([v for v, _ in distinct[:8]], dtype=np.float64),
     )
+
+
+def _rival(
+    frames: Sequence[_Frame],
+    pose: np.ndarray,
+    seen: Sequence[tuple[Score, np.ndarray]],
+    value: float,
+    distinct: Sequence[tuple[float, np.ndarray]],
+    config: RegisterConfig,
+    space: SearchSpace,
+) -> str:
+    """Returns why a distinct pose makes the answer ambiguous ("" if none does): it scores within the margin
+    of the best over the photos, unless what the best explains beyond it is more than chance and what it
+    explains beyond the best is not (``_advantage``, the single photo's test with the photos' evidence
+    combined): else each holds evidence the other lacks."""
+    dc = config.decide
+    for v, other in distinct:
+        if v < (1.0 - dc.margin) * value:
+            return ""
+        theirs = [view_score(f.view, f.image, f.camera, other, config.score) for f in frames]
+        over = _advantage(frames, pose, seen, theirs, config, space)
+        back = _advantage(frames, other, theirs, seen, config, space)
+        if over < dc.max_log10_nfa <= back:
+            continue
+        turn = rotation_error_deg(other[:3, :3], pose[:3, :3])
+        shift = float(np.linalg.norm(camera_center(other) - camera_center(pose)))
+        beyond = (
+            f"what the best explains beyond it 10^{over:.1f} chance poses would"
+            if over >= dc.max_log10_nfa
+            else f"it explains lines the best does not (10^{back:.1f} chance poses would)"
+        )
+        return (
+            f"ambiguous: a distinct pose ({turn:.1f} deg, {shift:.2f} m away) scores "
+            f"{100 * v / value:.0f} % of the best over the {len(frames)} photos, and {beyond}"
+        )
+    return ""
+
+
+def _advantage(
+    frames: Sequence[_Frame],
+    pose: np.ndarray,
+    mine: Sequence[tuple[Score, np.ndarray]],
+    theirs: Sequence[tuple[Score, np.ndarray]],
+    config: RegisterConfig,
+    space: SearchSpace,
+) -> float:
+    """Returns log10 of the number of false alarms of what ``pose`` explains beyond another pose over the
+    photos (each photo's (Score, seen parts) at either): in each photo the chance of its matches among the
+    image segments the other leaves unexplained (``pipeline.advantage_nfa``), the photos' chances combined
+    (``log10_fisher``: independent photos), among as many poses as the finest photo tells apart in the
+    space searched."""
+    tails, tests = [], []
+    for f, (score, parts), (other, _) in zip(frames, mine, theirs, strict=True):
+        t = space.log10_tests(f.camera, depth_of(parts, pose), config.score.distance_px)
+        tails.append(advantage_nfa(pose, score, parts, other, f.image, f.camera, config, space) - t)
+        tests.append(t)
+    return max(tests) + log10_fisher(tails)
 
 
 def _summed_unhidden(frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig) -> float:

@@ -22,6 +22,7 @@ a sparse image (tens of segments) a chance pose explaining a quarter of it can s
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numba
@@ -95,6 +96,26 @@ def log10_tail(p: np.ndarray, k: int) -> float:
         return -math.inf
     tail = _tail(np.ascontiguousarray(p, dtype=np.float64), int(k))
     return math.log10(max(tail, 5e-324))  # below the smallest double: as unlikely as it can say
+
+
+def log10_fisher(log10_p: Sequence[float]) -> float:
+    """Returns log10 of the probability that K independent chance p-values multiply to no more than these
+    (given as log10 p each; Fisher's combination, exact: P(p_1 ... p_K <= x) = x sum_{j<K} (-ln x)^j / j!).
+    Evidence spread over several photos adds up; a photo holding none (p = 1) weakens the rest only by the
+    count it adds. 0 for none; -inf if one is impossible by chance."""
+    k = len(log10_p)
+    if k == 0:
+        return 0.0
+    ln_x = math.log(10.0) * float(sum(log10_p))
+    if not math.isfinite(ln_x):
+        return -math.inf
+    y = max(-ln_x, 0.0)
+    if y == 0.0:
+        return 0.0
+    terms = [j * math.log(y) - math.lgamma(j + 1) for j in range(k)]
+    top = max(terms)
+    ln_sum = top + math.log(sum(math.exp(t - top) for t in terms))
+    return min(0.0, (ln_x + ln_sum) / math.log(10.0))
 
 
 def depth_of(segments: np.ndarray, cam_from_world: np.ndarray) -> float:

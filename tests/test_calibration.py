@@ -124,3 +124,30 @@ def test_the_benchmark_calibrates_a_synthetic_rig(tmp_path, capsys):
     assert len(rows) == 1 and rows[0]["rig"] == "demo seed 0" and rows[0]["photos"] == 2
     assert not rows[0]["wrong"]  # claimed only if right
     assert "synthetic: " in capsys.readouterr().out
+
+
+def test_a_distinct_rival_is_dismissed_only_when_the_best_holds_evidence_it_lacks(rig):
+    """A distinct pose scoring within the margin makes the answer ambiguous unless what the answer explains
+    beyond it, over the photos, is more than chance and what it explains beyond the answer is not
+    (``calibration._rival``): turned 3 deg about the optical axis it explains none of the lines the truth
+    misses (turned about the vertical, the facades' window columns line up again: that is evidence), so it
+    is dismissed; a twin explaining exactly the same lines is not."""
+    from linereg.calibration import COVER_STEP_DEG, _frames, _rival
+    from linereg.config import RegisterConfig
+    from linereg.lines2d import detect
+    from linereg.pipeline import view_score
+    from linereg.significance import SearchSpace
+
+    scene, images, maps, extrinsic = rig
+    config = RegisterConfig()
+    guess = Prior(cam_from_world=extrinsic, sigma_rot_deg=5.0, radius_m=0.5)
+    cam = scene.camera.undistorted()
+    frames = _frames([detect(im, scene.camera) for im in images], maps, [cam] * len(images), guess, config)
+    seen = [view_score(f.view, f.image, f.camera, extrinsic, config.score) for f in frames]
+    value = sum(score.value for score, _ in seen)
+    space = SearchSpace(1.0, 27, COVER_STEP_DEG * np.sqrt(3) / 2)
+    turned = make_cam_from_world(Rotation.from_rotvec(np.radians([0, 0, 3.0])).as_matrix() @ extrinsic[:3, :3], extrinsic[:3, 3])  # fmt: skip
+    assert _rival(frames, extrinsic, seen, value, [(value, turned)], config, space) == ""
+    twin = _rival(frames, extrinsic, seen, value, [(value, extrinsic.copy())], config, space)
+    assert twin.startswith("ambiguous: a distinct pose") and "chance poses would" in twin
+    assert _rival(frames, extrinsic, seen, value, [(0.5 * value, extrinsic.copy())], config, space) == ""

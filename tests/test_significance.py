@@ -80,3 +80,19 @@ def test_unrelated_images_are_never_an_answer(rng):
         noise = rng.uniform([0, 0, 0, 0], [640, 480, 640, 480], (40, 4))
         reg = linereg.register(noise, scene.lines3d, scene.camera)
         assert not reg.success, reg
+
+
+def test_fishers_combination_is_the_chi_square_tail_of_the_photos_p_values():
+    """Independent photos' chances combined (``log10_fisher``): exactly the tail of -2 sum(ln p) under a
+    chi-square of 2K degrees of freedom; a photo holding no evidence (p = 1) only dilutes the rest."""
+    from scipy.stats import chi2
+
+    from linereg.significance import log10_fisher
+
+    for log10_p in ([-3.0], [-3.0, 0.0], [-2.0, -2.0, -2.0], [-0.5] * 10, [-50.0, -40.0]):
+        ln = np.array(log10_p) * math.log(10.0)
+        expected = chi2.logsf(-2.0 * ln.sum(), 2 * len(ln)) / math.log(10.0)
+        assert math.isclose(log10_fisher(log10_p), expected, rel_tol=1e-9, abs_tol=1e-9)
+    assert log10_fisher([]) == 0.0 and log10_fisher([0.0, 0.0]) == 0.0
+    assert log10_fisher([-4.0]) < log10_fisher([-4.0, 0.0]) < 0.0
+    assert log10_fisher([-math.inf, -1.0]) == -math.inf
