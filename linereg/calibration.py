@@ -25,11 +25,13 @@ The covariance fuses the frames' own: each frame's fit at the answer plus its ma
 (``pipeline.with_map_floor``), combined as independent measurements of one pose (information summed),
 scaled by how much more the frames' own optima disagree than those covariances allow (``_disagreement``),
 plus the spread of the other refined poses that score within the margin without being distinct (law of
-total covariance, each such basin taken as likely as the answer: the decision's margin says a pose within
-it is not clearly worse). Single sweeps' summed scores can be rugged: on three to five KITTI frames of one
-calibration the basins found lie 0.15-0.8 deg / 3-11 cm from the truth, with others a degree or two away scoring
-within the margin, and the fit's covariance alone had claimed a basin 1.4 deg off to a tenth of a degree
-(docs/measurements.md, session 55): such answers are now refused as undetermined.
+total covariance), each such basin weighted by the odds that the photos favour it over the answer: a
+paired t-test of the photos' scores at either (``_odds``; as likely as the answer with fewer than three
+photos, where the photos' own scatter cannot be measured). Single sweeps' summed scores can be rugged:
+on three to five KITTI frames of one calibration the basins found lie 0.15-0.8 deg / 3-11 cm from the
+truth, with others a degree or two away scoring within the margin, and the fit's covariance alone had
+claimed a basin 1.4 deg off to a tenth of a degree (docs/measurements.md, session 55): such answers are
+refused as undetermined. Over 21 photos, a basin every photo scores lower weighs nothing (session 56).
 """
 
 from __future__ import annotations
@@ -308,13 +310,22 @@ def _decide(
     """Returns the Calibration of the best of the jointly refined (pose, frames' tolerances, summed
     score), best first: claimed when two frames are explained at it (``_unexplained``), no distinct pose scores
     within the margin without the best holding evidence it lacks (``_rival``), and its covariance with the
-    spread of the non-distinct basins within the margin pins it (``pipeline.undetermined``)."""
+    spread of the non-distinct basins within the margin (each by its ``_odds``) pins it
+    (``pipeline.undetermined``)."""
     dc = config.decide
     pose, tolerance, value = refined[0]
     seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
     fit = _fused_covariance(frames, pose, tolerance, [part for _, part in seen], config)
     near = [T for T, _, v in refined[1:] if v >= (1.0 - dc.margin) * value]
-    spread = _spread(pose, [T for T in near if not differs(T, pose, everything, dc)])
+    near = [T for T in near if not differs(T, pose, everything, dc)]
+    mine = np.array([score.value for score, _ in seen])
+    odds = [
+        _odds(
+            mine, np.array([view_score(f.view, f.image, f.camera, T, config.score)[0].value for f in frames])
+        )
+        for T in near
+    ]
+    spread = _spread(pose, near, odds)
     ratio, offsets = _disagreement(frames, pose, config)
     covariance = fit * ratio + spread
     distinct: list[tuple[float, np.ndarray]] = []
@@ -609,15 +620,37 @@ def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
     return close and rotation_error_deg(a[:3, :3], b[:3, :3]) < 0.01
 
 
-def _spread(best: np.ndarray, others: Sequence[np.ndarray]) -> np.ndarray:
-    """Returns the (6, 6) second moment about ``best`` of it and ``others`` taken as equally likely
-    (gtsam's tangent of world_T_cam, rotation first, as the covariance): what the answer cannot tell
-    apart adds to its uncertainty (the law of total covariance)."""
+def _spread(
+    best: np.ndarray, others: Sequence[np.ndarray], odds: Sequence[float] | None = None
+) -> np.ndarray:
+    """Returns the (6, 6) second moment about ``best`` of it and ``others``, each other pose weighted by its
+    ``odds`` against the best (None: all 1, as likely; gtsam's tangent of world_T_cam, rotation first, as
+    the covariance): what the answer cannot tell apart adds to its uncertainty (the law of total
+    covariance)."""
     if not others:
         return np.zeros((6, 6))
+    w = np.ones(len(others)) if odds is None else np.asarray(odds, dtype=np.float64)
     here = gtsam.Pose3(invert(best))
     xi = np.array([gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(T)))) for T in others])
-    return xi.T @ xi / (len(others) + 1)
+    return (xi * w[:, None]).T @ xi / (1.0 + w.sum())
+
+
+def _odds(mine: np.ndarray, theirs: np.ndarray) -> float:
+    """Returns the odds that another pose, not the answer, is the one the photos favour, from the (K,)
+    photos' scores at each: their differences as K draws of how much the answer explains more (a paired
+    t-test across the photos: what another draw of photos would say). 1 (as likely) with fewer than
+    three photos or a pose scoring as much; 0 when every photo scores the answer the same amount higher."""
+    d = np.asarray(mine, dtype=np.float64) - np.asarray(theirs, dtype=np.float64)
+    k, total = len(d), float(d.sum())
+    if k < 3 or total <= 0.0:
+        return 1.0
+    spread = float(np.std(d, ddof=1)) * np.sqrt(k)
+    if spread <= 0.0:
+        return 0.0
+    from scipy.stats import t
+
+    p = float(t.sf(total / spread, k - 1))
+    return min(p / max(1.0 - p, 1e-300), 1.0)
 
 
 def _unexplained(

@@ -151,3 +151,26 @@ def test_a_distinct_rival_is_dismissed_only_when_the_best_holds_evidence_it_lack
     twin = _rival(frames, extrinsic, seen, value, [(value, extrinsic.copy())], config, space)
     assert twin.startswith("ambiguous: a distinct pose") and "chance poses would" in twin
     assert _rival(frames, extrinsic, seen, value, [(0.5 * value, extrinsic.copy())], config, space) == ""
+
+
+def test_a_near_basin_counts_in_the_spread_by_its_odds_across_the_photos():
+    """The spread of the basins the answer cannot tell apart weighs each by the odds that the photos favour
+    it (``calibration._odds``, a paired t-test of the photos' scores): a basin every photo scores lower
+    weighs nothing, one the photos disagree on weighs its odds, and with fewer than three photos (no
+    spread to measure) every basin counts as likely as the answer."""
+    from scipy.stats import t
+
+    from linereg.calibration import _odds, _spread
+
+    mine = np.array([100.0, 120.0, 90.0, 110.0])
+    assert _odds(mine, mine - 10.0) == 0.0  # every photo 10 px lower: certainly worse
+    assert _odds(mine, mine) == 1.0 and _odds(mine[:2], mine[:2] - 50.0) == 1.0
+    mixed = mine - np.array([30.0, -20.0, 25.0, -15.0])  # lower by 20 px in all, the photos disagree
+    d = mine - mixed
+    p = t.sf(d.mean() / (d.std(ddof=1) / 2.0), 3)
+    assert _odds(mine, mixed) == pytest.approx(p / (1 - p)) and 0.0 < _odds(mine, mixed) < 1.0
+    best = np.eye(4)
+    other = make_cam_from_world(Rotation.from_rotvec([0.0, 0.02, 0.0]).as_matrix(), [0.1, 0.0, 0.0])
+    assert np.allclose(_spread(best, [other], [0.0]), 0.0)
+    full, half = _spread(best, [other], [1.0]), _spread(best, [other], [0.5])
+    assert np.allclose(half, full * (0.5 / 1.5) / (1.0 / 2.0))
