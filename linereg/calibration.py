@@ -53,10 +53,12 @@ from .map.linemap import LineMap
 from .pipeline import (
     MapView,
     advantage_nfa,
+    basin_spread,
     differs,
     explains_too_little,
     log10_nfa,
     register_undistorted,
+    same_pose,
     undetermined,
     view_score,
     with_map_floor,
@@ -236,7 +238,7 @@ def _calibrate_undistorted(
     refined: list[tuple[np.ndarray, list[float], float]] = []  # (pose, tolerances, summed score)
     for T in contenders:
         pose, tolerance = refine_jointly(frames, T, config)
-        if not admits_pose(guess, pose) or any(_same_pose(pose, other) for other, _, _ in refined):
+        if not admits_pose(guess, pose) or any(same_pose(pose, other) for other, _, _ in refined):
             continue  # outside the guess's bounds, or a basin reached before
         refined.append((pose, tolerance, _summed(frames, pose, config)))
     timings["joint"] = time.perf_counter() - start
@@ -325,7 +327,7 @@ def _decide(
         )
         for T in near
     ]
-    spread = _spread(pose, near, odds)
+    spread = basin_spread(pose, near, odds)
     ratio, offsets = _disagreement(frames, pose, config)
     covariance = fit * ratio + spread
     distinct: list[tuple[float, np.ndarray]] = []
@@ -612,27 +614,6 @@ def _cover(
     centre = camera_center(T0)
     starts = [(make_cam_from_world(R, -R @ (centre + d)), float(half)) for R in turns for d in shifts]
     return starts, float(slack_deg)
-
-
-def _same_pose(a: np.ndarray, b: np.ndarray) -> bool:
-    """Returns True if two refined poses are one basin reached twice (within 0.01 deg and 1 mm)."""
-    close = float(np.linalg.norm(camera_center(a) - camera_center(b))) < 1e-3
-    return close and rotation_error_deg(a[:3, :3], b[:3, :3]) < 0.01
-
-
-def _spread(
-    best: np.ndarray, others: Sequence[np.ndarray], odds: Sequence[float] | None = None
-) -> np.ndarray:
-    """Returns the (6, 6) second moment about ``best`` of it and ``others``, each other pose weighted by its
-    ``odds`` against the best (None: all 1, as likely; gtsam's tangent of world_T_cam, rotation first, as
-    the covariance): what the answer cannot tell apart adds to its uncertainty (the law of total
-    covariance)."""
-    if not others:
-        return np.zeros((6, 6))
-    w = np.ones(len(others)) if odds is None else np.asarray(odds, dtype=np.float64)
-    here = gtsam.Pose3(invert(best))
-    xi = np.array([gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(T)))) for T in others])
-    return (xi * w[:, None]).T @ xi / (1.0 + w.sum())
 
 
 def _odds(mine: np.ndarray, theirs: np.ndarray) -> float:

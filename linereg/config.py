@@ -447,6 +447,9 @@ class DecideConfig:
     # its lines within 4 px but not within 1 (measured on the demo, docs/measurements.md, session 25)
     sharp_fraction: float = 0.25
     sharp_keep: float = 0.5
+    # an answer's covariance holds the spread of the basins next to it within the margin and not distinct,
+    # solved from it turned by this angle each way about each camera axis (``pipeline.near_basins``; 0: none)
+    basin_turn_deg: float = 1.0
 
 
 @dataclass(frozen=True)

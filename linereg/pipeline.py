@@ -24,7 +24,7 @@ from .config import DecideConfig, RegisterConfig, ScoreConfig
 from .copies import copy_starts
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .geometry import camera_center, orbited, rotation_error_deg, rotation_from_vector
+from .geometry import camera_center, invert, orbited, rotation_error_deg, rotation_from_vector
 from .parallel import parallel_clusters
 from .points import Points, image_points, map_gap_m, map_points
 from .priors import Prior, admits, admits_pose, search_region
@@ -40,7 +40,7 @@ from .score import (
     score_pose,
     shifted_values,
 )
-from .search import Found, MapSignatures, map_signatures, screen, search, solve_all
+from .search import Found, MapSignatures, map_signatures, screen, search, solve_all, solve_locally
 from .significance import SearchSpace, chance_probabilities, depth_of, log10_tail
 from .threads import map_threads
 from .timing import StageTimer
@@ -386,6 +386,10 @@ def decide(
     covariance = with_map_floor(best.covariance, view.accuracy_m, seen[order[0]][1], best.cam_from_world)
     if not reason and slides is not None and (moved := slides[order[0]]) is not None:
         reason = f"ambiguous: the refinement slid the pose {moved[0]:.1f} deg / {moved[1]:.2f} m along a flat score"
+    if not reason and dc.basin_turn_deg > 0:
+        with timer("decide"):
+            near = near_basins(best, seen[order[0]][1], image, view, camera, config, space)
+        covariance = covariance + basin_spread(best.cam_from_world, near)
     if not reason:
         reason = undetermined(covariance, best.cam_from_world, lines3d, dc)
     return Registration(
@@ -431,6 +435,95 @@ def explains_too_little(
     if room < total:
         share += f", {percent(explained_px, room)} % of the {percent(room, total)} % the map covers"
     return f"explains {share} (< {100 * floor:.0f} %)"
+
+
+def near_basins(
+    answer: Refinement,
+    seen: np.ndarray,
+    image: ImageLines,
+    view: MapView,
+    camera: Camera,
+    config: RegisterConfig,
+    space: SearchSpace,
+) -> list[np.ndarray]:
+    """Returns the other basins of the score next to the ``answer`` (its pose refined, its occlusion-aware
+    Score, seeing the (K, 6) map parts ``seen``): solved (``solve_locally``) from it turned by
+    ``basin_turn_deg`` each way about each camera axis, refined twice as it was, kept when they are neither
+    the answer nor distinct from it (``differs``) and a distinct pose there would be a rival too: they score
+    within the margin, and neither the precision test (``sharp_dismisses``) nor the advantage test (what
+    the answer explains beyond one significant, the reverse not: ``advantage_nfa``) sets them aside, as
+    they set a distinct rival aside. Poses the decision calls one answer that the fit's curvature at it
+    does not see: a rugged score along the valley where a turn and a shift compensate."""
+    dc = config.decide
+    best, value = answer.cam_from_world, answer.score.value
+    turn = dc.basin_turn_deg
+    search = replace(config.search, rotation_slack_deg=1.5 * turn)
+    centre = camera_center(best)
+    starts = []
+    for axis in np.eye(3):
+        for sign in (-1.0, 1.0):
+            R = rotation_from_vector(np.radians(sign * turn) * axis) @ best[:3, :3]
+            T = np.eye(4)
+            T[:3, :3], T[:3, 3] = R, -R @ centre
+            starts.append(T)
+
+    def basin(start: np.ndarray) -> np.ndarray | None:
+        q = solve_locally(
+            image, view.segments, camera, start, 0.0, search, config.score, view.visible, view.chunks
+        )
+        if q is None:
+            return None
+        return refined_pose(view, image, camera, refined_pose(view, image, camera, q[0], config), config)
+
+    found: list[np.ndarray] = []
+    mine = answer.score.matches(dc.min_cover)
+    depth = depth_of(view.segments[mine[:, 1]], best) if len(mine) else 1.0
+    sharp = cache(lambda: fine_value(view, image, camera, best, config))
+    for T in [T for T in map_threads(basin, starts, config.search.max_threads) if T is not None]:
+        if same_pose(T, best) or any(same_pose(T, other) for other in found):
+            continue
+        if differs(T, best, view.segments, dc):
+            continue
+        theirs, theirs_seen = view_score(view, image, camera, T, config.score)
+        if theirs.value < (1.0 - dc.margin) * value:
+            continue
+
+        def evidence(theirs: Score = theirs) -> bool:
+            return precision_is_evidence(
+                theirs.matches(dc.min_cover), mine, view.accuracy_m, depth, camera, config
+            )
+
+        fine = partial(fine_value, view, image, camera, T, config)
+        if sharp_dismisses(value, theirs.value, sharp(), fine, evidence, dc):
+            continue
+        over = advantage_nfa(best, answer.score, seen, theirs, image, camera, config, space)
+        back = advantage_nfa(T, theirs, theirs_seen, answer.score, image, camera, config, space)
+        if not over < dc.max_log10_nfa <= back:
+            found.append(T)
+    return found
+
+
+def same_pose(a: np.ndarray, b: np.ndarray) -> bool:
+    """Returns True if two refined poses are one basin reached twice (within 0.01 deg and 1 mm)."""
+    close = float(np.linalg.norm(camera_center(a) - camera_center(b))) < 1e-3
+    return close and rotation_error_deg(a[:3, :3], b[:3, :3]) < 0.01
+
+
+def basin_spread(
+    best: np.ndarray, others: Sequence[np.ndarray], odds: Sequence[float] | None = None
+) -> np.ndarray:
+    """Returns the (6, 6) second moment about ``best`` of it and ``others``, each other pose weighted by its
+    ``odds`` against the best (None: all 1, as likely; gtsam's tangent of world_T_cam, rotation first, as
+    the covariance): what the answer cannot tell apart adds to its uncertainty (the law of total
+    covariance)."""
+    import gtsam
+
+    if not others:
+        return np.zeros((6, 6))
+    w = np.ones(len(others)) if odds is None else np.asarray(odds, dtype=np.float64)
+    here = gtsam.Pose3(invert(best))
+    xi = np.array([gtsam.Pose3.Logmap(here.between(gtsam.Pose3(invert(T)))) for T in others])
+    return np.asarray((xi * w[:, None]).T @ xi / (1.0 + w.sum()))
 
 
 def undetermined(

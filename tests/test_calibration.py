@@ -160,7 +160,8 @@ def test_a_near_basin_counts_in_the_spread_by_its_odds_across_the_photos():
     spread to measure) every basin counts as likely as the answer."""
     from scipy.stats import t
 
-    from linereg.calibration import _odds, _spread
+    from linereg.calibration import _odds
+    from linereg.pipeline import basin_spread as _spread
 
     mine = np.array([100.0, 120.0, 90.0, 110.0])
     assert _odds(mine, mine - 10.0) == 0.0  # every photo 10 px lower: certainly worse

@@ -27,6 +27,7 @@ from linereg.score import (
     score_projected,
     shifted_values,
 )
+from linereg.significance import SearchSpace
 from linereg.sim.synthetic import decoy_scene, look_at, paper_scene, project_visible
 
 
@@ -489,3 +490,45 @@ def test_a_refinement_that_slides_along_a_valley_is_no_answer():
     assert slid(truth, refinement(near), at_truth, view, config) is None  # not a distinct pose
     away = make_cam_from_world(np.eye(3), [-2.0, 0.0, 0.0])  # a start 2 m off, refined home
     assert slid(away, refinement(truth), refinement(away).score, view, config) is None
+
+
+def test_a_basin_next_to_the_answer_that_scores_as_well_widens_its_covariance():
+    """A map holding every line twice, the copy turned 1.5 deg about the camera's vertical (a ghost: seen
+    from the true centre turned by 1.5 deg, it projects where the lines do). The two poses are one answer to
+    the decision (not 2 deg apart) and the fit at either is sharp, so without more the answer is claimed
+    to a fraction of a degree. Solved from the answer turned by 1 deg each way (``near_basins``), the
+    ghost's basin is found; it scores as well and holds the same evidence, so its spread enters the
+    covariance and the answer is refused as undetermined. Without the ghost nothing is added."""
+    from linereg.config import DecideConfig
+    from linereg.pipeline import near_basins
+
+    camera = linereg.Camera(fx=800.0, fy=800.0, cx=320.0, cy=240.0, width=640, height=480)
+    truth = look_at(np.zeros(3), np.array([0.0, 10.0, 0.0]))
+    rng = np.random.default_rng(2)
+    a = rng.uniform(-4.0, 4.0, (40, 2))
+    b = a + rng.uniform(-1.5, 1.5, (40, 2))
+    depth = rng.uniform(9.0, 14.0, (40, 1))
+    lines3d = np.c_[a[:, :1], depth, a[:, 1:], b[:, :1], depth + rng.uniform(-1, 1, (40, 1)), b[:, 1:]]
+    lines2d = project_visible(lines3d, camera, truth)[0]
+    turn = rotation_from_vector(
+        np.radians([0.0, 0.0, 1.5])
+    )  # about the world's vertical (z), the centre at 0
+    ghost = np.c_[lines3d[:, :3] @ turn.T, lines3d[:, 3:] @ turn.T]
+    prior = linereg.Prior(cam_from_world=truth, sigma_rot_deg=5.0, radius_m=0.5)
+    for segments, answered in ((lines3d, True), (np.concatenate([lines3d, ghost]), False)):
+        line_map = linereg.LineMap.from_segments(segments)
+        for basin_turn, expected in ((0.0, True), (1.0, answered)):
+            config = RegisterConfig(decide=DecideConfig(basin_turn_deg=basin_turn))
+            result = linereg.localize_segments(lines2d, line_map, camera, prior=prior, config=config)
+            assert result.success == expected, (len(segments), basin_turn, result.reason)
+            if not expected:
+                assert result.reason.startswith("ambiguous: the pose is determined to")
+    config = RegisterConfig()
+    view = map_view(linereg.LineMap.from_segments(np.concatenate([lines3d, ghost])), None, config)
+    image = image_lines(lines2d, camera, config.score)
+    best = refine_pose(image, view.segments, camera, truth, config.refine, config.score)
+    score, seen = view_score(view, image, camera, best.cam_from_world, config.score)
+    space = SearchSpace(1.0, 4, 2.0)
+    found = near_basins(replace(best, score=score), seen, image, view, camera, config, space)
+    assert len(found) >= 1
+    assert min(rotation_error_deg(T[:3, :3], best.cam_from_world[:3, :3]) for T in found) > 1.0
