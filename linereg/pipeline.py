@@ -5,7 +5,8 @@ III-C  for all candidates at once, camera centres from the rays of matched corne
        replaces the paper's random 3-pair hypotheses: every point correspondence votes), each best voxel
        solved locally and scored without correspondences (``score.py``);
 III-D  GTSAM refinement of the best distinct poses on matched fragments (eq. "costs", ``refine.py``);
-then   the decision: a pose is an answer only when no distinct pose comes close (``decide``).
+then   the decision: a pose is an answer only when no distinct pose comes close, and the basins next to it
+       that explain the image as well do not spread it as far as distinct poses lie (``decide``).
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from dataclasses import dataclass, replace
 from functools import cache, partial
 from typing import TypeVar
 
+import gtsam
 import numpy as np
 
 from .camera import Camera
@@ -24,7 +26,14 @@ from .config import DecideConfig, RegisterConfig, ScoreConfig
 from .copies import copy_starts
 from .directions import DirectionClusters
 from .errors import InvalidInputError
-from .geometry import camera_center, invert, orbited, rotation_error_deg, rotation_from_vector
+from .geometry import (
+    camera_center,
+    invert,
+    make_cam_from_world,
+    orbited,
+    rotation_error_deg,
+    rotation_from_vector,
+)
 from .parallel import parallel_clusters
 from .points import Points, image_points, map_gap_m, map_points
 from .priors import Prior, admits, admits_pose, search_region
@@ -276,7 +285,9 @@ def decide(
     score's distance, where the best keeps ``sharp_keep`` of its score, is a less precise fit, where that
     is evidence (``precision_is_evidence``: the same map lines, or a map more accurate than that distance);
     and never when its refinement slid it to a distinct pose along a flat score (``slides``: ``slid`` of
-    each refined pose, None: not known)."""
+    each refined pose, None: not known). Last, its covariance (the fit's, with the map's floor) takes in
+    the spread of the basins next to it that the rival tests would not set aside (``near_basins``,
+    ``basin_spread``), and it is refused when that reaches distinct poses (``undetermined``)."""
     dc = config.decide
     lines3d = view.segments
     with timer("decide"):
@@ -459,13 +470,8 @@ def near_basins(
     turn = dc.basin_turn_deg
     search = replace(config.search, rotation_slack_deg=1.5 * turn)
     centre = camera_center(best)
-    starts = []
-    for axis in np.eye(3):
-        for sign in (-1.0, 1.0):
-            R = rotation_from_vector(np.radians(sign * turn) * axis) @ best[:3, :3]
-            T = np.eye(4)
-            T[:3, :3], T[:3, 3] = R, -R @ centre
-            starts.append(T)
+    turns = [rotation_from_vector(np.radians(sign * turn) * axis) for axis in np.eye(3) for sign in (-1, 1)]
+    starts = [make_cam_from_world(R @ best[:3, :3], -(R @ best[:3, :3]) @ centre) for R in turns]
 
     def basin(start: np.ndarray) -> np.ndarray | None:
         q = solve_locally(
@@ -516,8 +522,6 @@ def basin_spread(
     ``odds`` against the best (None: all 1, as likely; gtsam's tangent of world_T_cam, rotation first, as
     the covariance): what the answer cannot tell apart adds to its uncertainty (the law of total
     covariance)."""
-    import gtsam
-
     if not others:
         return np.zeros((6, 6))
     w = np.ones(len(others)) if odds is None else np.asarray(odds, dtype=np.float64)
