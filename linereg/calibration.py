@@ -155,6 +155,26 @@ class _Frame:
     coeffs: np.ndarray  # (N, 3) the image segments' line coefficients
 
 
+@dataclass(frozen=True)
+class _Refined:
+    """A pose refined over the frames: its frames' last matching tolerances (px, for ``_fused_covariance``)
+    and each frame's occlusion-aware (Score, seen map parts) there, scored once for every test after."""
+
+    pose: np.ndarray
+    tolerance: list[float]
+    seen: list[tuple[Score, np.ndarray]]
+
+    @property
+    def values(self) -> np.ndarray:
+        """(K,) each frame's score."""
+        return np.array([score.value for score, _ in self.seen])
+
+    @property
+    def value(self) -> float:
+        """The frames' scores summed (in order, as a ranking compares them)."""
+        return float(sum(score.value for score, _ in self.seen))
+
+
 def calibrate(
     images: Sequence[np.ndarray],
     maps: Sequence[LineMap],
@@ -235,19 +255,19 @@ def _calibrate_undistorted(
             contenders.append(T)
         if len(contenders) == CONTENDERS:
             break
-    refined: list[tuple[np.ndarray, list[float], float]] = []  # (pose, tolerances, summed score)
+    refined: list[_Refined] = []
     for T in contenders:
         pose, tolerance = refine_jointly(frames, T, config)
-        if not admits_pose(guess, pose) or any(same_pose(pose, other) for other, _, _ in refined):
+        if not admits_pose(guess, pose) or any(same_pose(pose, other.pose) for other in refined):
             continue  # outside the guess's bounds, or a basin reached before
-        refined.append((pose, tolerance, _summed(frames, pose, config)))
+        refined.append(_Refined(pose, tolerance, _seen(frames, pose, config)))
     timings["joint"] = time.perf_counter() - start
     timings["total"] = timings["alone"] + timings["joint"]
     if not refined:
         reason = "every pose refined over the frames leaves the guess's bounds"
         guessed = np.asarray(guess.cam_from_world)
         return Calibration(False, reason, guessed, singles=tuple(singles), timings=timings)
-    refined.sort(key=lambda r: -r[2])
+    refined.sort(key=lambda r: -r.value)
     space = SearchSpace((2.0 * float(guess.radius_m or 0.0)) ** 3, rotations, COVER_STEP_DEG * np.sqrt(3) / 2)
     return replace(
         _decide(frames, refined, everything, space, config), singles=tuple(singles), timings=timings
@@ -304,7 +324,7 @@ def _candidates(
 
 def _decide(
     frames: Sequence[_Frame],
-    refined: Sequence[tuple[np.ndarray, list[float], float]],
+    refined: Sequence[_Refined],
     everything: np.ndarray,
     space: SearchSpace,
     config: RegisterConfig,
@@ -315,27 +335,20 @@ def _decide(
     spread of the non-distinct basins within the margin (each by its ``_odds``) pins it
     (``pipeline.undetermined``)."""
     dc = config.decide
-    pose, tolerance, value = refined[0]
-    seen = [view_score(f.view, f.image, f.camera, pose, config.score) for f in frames]
-    fit = _fused_covariance(frames, pose, tolerance, [part for _, part in seen], config)
-    near = [T for T, _, v in refined[1:] if v >= (1.0 - dc.margin) * value]
-    near = [T for T in near if not differs(T, pose, everything, dc)]
-    mine = np.array([score.value for score, _ in seen])
-    odds = [
-        _odds(
-            mine, np.array([view_score(f.view, f.image, f.camera, T, config.score)[0].value for f in frames])
-        )
-        for T in near
-    ]
-    spread = basin_spread(pose, near, odds)
+    best = refined[0]
+    pose, value, seen = best.pose, best.value, best.seen
+    fit = _fused_covariance(frames, pose, best.tolerance, [part for _, part in seen], config)
+    near = [r for r in refined[1:] if r.value >= (1.0 - dc.margin) * value]
+    near = [r for r in near if not differs(r.pose, pose, everything, dc)]
+    spread = basin_spread(pose, [r.pose for r in near], [_odds(best.values, r.values) for r in near])
     ratio, offsets = _disagreement(frames, pose, config)
     covariance = fit * ratio + spread
-    distinct: list[tuple[float, np.ndarray]] = []
-    for T, _, v in refined[1:]:
-        if differs(T, pose, everything, dc) and all(
-            differs(T, other, everything, dc) for _, other in distinct
+    distinct: list[_Refined] = []
+    for r in refined[1:]:
+        if differs(r.pose, pose, everything, dc) and all(
+            differs(r.pose, other.pose, everything, dc) for other in distinct
         ):
-            distinct.append((v, T))
+            distinct.append(r)
     matches = [score.matches(dc.min_cover) for score, _ in seen]
     verdicts = [
         _unexplained(f, pose, sc, part, config, space) for f, (sc, part) in zip(frames, seen, strict=True)
@@ -347,7 +360,7 @@ def _decide(
     elif explained < 2:
         why = next(v for v in verdicts if v)
         reason = f"{explained} of {len(frames)} photos are explained at the best pose, a calibration needs two ({why})"
-    elif rival := _rival(frames, pose, seen, value, distinct, config, space):
+    elif rival := _rival(frames, best, distinct, config, space):
         reason = rival
     elif not np.isfinite(covariance).all():
         reason = "the photos' lines do not fix every degree of freedom of the pose (a degenerate fit)"
@@ -359,24 +372,22 @@ def _decide(
         cam_from_lidar=pose,
         covariance=covariance,
         score=float(value),
-        frame_scores=np.array([score.value for score, _ in seen]),
+        frame_scores=best.values,
         frame_inliers=np.array([len(m) for m in matches], dtype=np.int64),
         frame_rms_px=np.array([_rms(f, pose, config) for f in frames]),
         frame_offsets=offsets,
         frame_matches=tuple(
             np.c_[m[:, 0], f.rows[m[:, 1]]].astype(np.int64) for m, f in zip(matches, frames, strict=True)
         ),
-        alternatives=np.array([T for _, T in distinct[:8]]).reshape(-1, 4, 4),
-        alternative_scores=np.array([v for v, _ in distinct[:8]], dtype=np.float64),
+        alternatives=np.array([r.pose for r in distinct[:8]]).reshape(-1, 4, 4),
+        alternative_scores=np.array([r.value for r in distinct[:8]], dtype=np.float64),
     )
 
 
 def _rival(
     frames: Sequence[_Frame],
-    pose: np.ndarray,
-    seen: Sequence[tuple[Score, np.ndarray]],
-    value: float,
-    distinct: Sequence[tuple[float, np.ndarray]],
+    best: _Refined,
+    distinct: Sequence[_Refined],
     config: RegisterConfig,
     space: SearchSpace,
 ) -> str:
@@ -385,12 +396,13 @@ def _rival(
     explains beyond the best is not (``_advantage``, the single photo's test with the photos' evidence
     combined): else each holds evidence the other lacks."""
     dc = config.decide
-    for v, other in distinct:
+    pose, value = best.pose, best.value
+    for rival in distinct:
+        v, other = rival.value, rival.pose
         if v < (1.0 - dc.margin) * value:
             return ""
-        theirs = [view_score(f.view, f.image, f.camera, other, config.score) for f in frames]
-        over = _advantage(frames, pose, seen, theirs, config, space)
-        back = _advantage(frames, other, theirs, seen, config, space)
+        over = _advantage(frames, pose, best.seen, rival.seen, config, space)
+        back = _advantage(frames, other, rival.seen, best.seen, config, space)
         if over < dc.max_log10_nfa <= back:
             continue
         turn = rotation_error_deg(other[:3, :3], pose[:3, :3])
@@ -446,11 +458,11 @@ def _summed_unhidden(frames: Sequence[_Frame], cam_from_lidar: np.ndarray, confi
     )
 
 
-def _summed(frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig) -> float:
-    """Returns the frames' occlusion-aware scores of one pose, summed."""
-    return float(
-        sum(view_score(f.view, f.image, f.camera, cam_from_lidar, config.score)[0].value for f in frames)
-    )
+def _seen(
+    frames: Sequence[_Frame], cam_from_lidar: np.ndarray, config: RegisterConfig
+) -> list[tuple[Score, np.ndarray]]:
+    """Returns each frame's occlusion-aware (Score, seen map parts) of one pose (``pipeline.view_score``)."""
+    return [view_score(f.view, f.image, f.camera, cam_from_lidar, config.score) for f in frames]
 
 
 def _rms(frame: _Frame, pose: np.ndarray, config: RegisterConfig) -> float:

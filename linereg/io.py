@@ -13,6 +13,7 @@ import os
 import tempfile
 import warnings
 from collections.abc import Iterable, Sequence
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -87,8 +88,7 @@ def _read(
     reader = {".ply": _read_open3d, ".pcd": _read_open3d, ".xyz": _read_text, ".txt": _read_text}.get(suffix)
     reader = reader or {".las": _read_las, ".laz": _read_las, ".e57": _read_e57}[suffix]
     try:
-        points, intensity = reader(path, with_intensity)
-        rings = _read_rings(path) if with_rings else None
+        points, intensity, rings = reader(path, with_intensity, with_rings)
     except FileFormatError:
         raise
     except Exception as e:  # each library has its own exceptions for a corrupt file
@@ -121,33 +121,6 @@ def _read(
     return points, intensity, rings
 
 
-def _read_rings(path: Path) -> np.ndarray | None:
-    """Returns a cloud file's per-point laser numbers (``RING_FIELDS``; the first present), None if none."""
-    suffix = path.suffix.lower()
-    if suffix == ".ply":
-        layout = _ply_layout(path)
-        if layout is not None:  # binary: open3d's reader skips ushort properties, a ring's usual type
-            dtype, offset, count = layout
-            name = next((n for n in RING_FIELDS if n in (dtype.names or ())), None)
-            rows = np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))
-            return None if name is None else np.array(rows[name])
-        return _ascii_ply_rings(path)
-    if suffix == ".pcd":
-        from ._open3d import open3d
-
-        attributes = open3d().t.io.read_point_cloud(str(path), remove_nan_points=False).point
-        name = next((n for n in RING_FIELDS if n in attributes), None)
-        return None if name is None else attributes[name].numpy().reshape(-1)
-    if suffix in (".las", ".laz"):
-        import laspy
-
-        las = laspy.read(path)
-        names = {n.lower(): n for n in las.point_format.dimension_names}
-        name = next((names[n] for n in RING_FIELDS if n in names), None)
-        return None if name is None else np.asarray(las[name])
-    return None
-
-
 def _ascii_ply_rings(path: Path) -> np.ndarray | None:
     """Returns the ring property of an ASCII PLY whose first element is its vertices, None if it has none."""
     with open(path, "rb") as f:
@@ -167,7 +140,7 @@ def _ascii_ply_rings(path: Path) -> np.ndarray | None:
             if w[:1] != ["property"] or w[1] == "list":
                 break
             props.append(w[-1])
-        name = next((n for n in RING_FIELDS if n in props), None)
+        name = _ring_name(props)
         if name is None:
             return None
         rows = np.loadtxt(f, max_rows=int(elements[0][2]), usecols=props.index(name), ndmin=1)
@@ -232,36 +205,48 @@ def _check_readable(path: Path) -> None:
         raise FileFormatError(f"{path}: empty file")
 
 
-def _read_open3d(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _read_open3d(
+    path: Path, with_intensity: bool, with_rings: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     from ._open3d import open3d
 
     o3d = open3d()
-    expected = _ply_vertex_count(path) if path.suffix.lower() == ".ply" else None
-    layout = _ply_layout(path) if expected is not None else None
-    if layout is not None and set(RING_FIELDS) & set(layout[0].names or ()):
-        # open3d skips a ushort ring with a warning; ``_read_rings`` reads it
-        with o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error):
-            return _read_open3d_as_is(o3d, path, with_intensity, expected)
-    return _read_open3d_as_is(o3d, path, with_intensity, expected)
-
-
-def _read_open3d_as_is(
-    o3d: Any, path: Path, with_intensity: bool, expected: int | None
-) -> tuple[np.ndarray, np.ndarray | None]:
+    ply = path.suffix.lower() == ".ply"
+    expected = _ply_vertex_count(path) if ply else None
+    layout = _ply_layout(path) if ply else None
+    ring = _ring_name(layout[0].names or ()) if layout is not None else None
+    # the tensor reader keeps every property (the legacy cloud holds no intensity) but skips a PLY's ushort
+    # ring with a warning: that one is read from the file's records below
+    tensor = with_intensity or (with_rings and not ply)
+    quiet = o3d.utility.VerbosityContextManager(o3d.utility.VerbosityLevel.Error) if ring else nullcontext()
     # open3d reports a corrupt file on stderr and returns an empty or partial cloud: checked here and by the caller
-    intensity = None
-    if with_intensity:  # the tensor reader keeps every property (the legacy cloud holds no intensity)
-        attributes = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False).point
-        has = "positions" in attributes
-        points = attributes["positions"].numpy().astype(np.float64) if has else np.zeros((0, 3))
-        if "intensity" in attributes:
-            intensity = attributes["intensity"].numpy().astype(np.float64).reshape(-1)
-    else:
-        cloud = o3d.io.read_point_cloud(str(path), format="auto", remove_nan_points=False)
-        points = np.asarray(cloud.points, dtype=np.float64)
+    intensity = rings = None
+    with quiet:
+        if tensor:
+            attributes = o3d.t.io.read_point_cloud(str(path), remove_nan_points=False).point
+            has = "positions" in attributes
+            points = attributes["positions"].numpy().astype(np.float64) if has else np.zeros((0, 3))
+            if with_intensity and "intensity" in attributes:
+                intensity = attributes["intensity"].numpy().astype(np.float64).reshape(-1)
+            if with_rings and not ply and (name := _ring_name(list(attributes))) is not None:
+                rings = attributes[name].numpy().reshape(-1)
+        else:
+            cloud = o3d.io.read_point_cloud(str(path), format="auto", remove_nan_points=False)
+            points = np.asarray(cloud.points, dtype=np.float64)
     if expected is not None and len(points) != expected:
         raise FileFormatError(f"{path}: corrupt PLY: header declares {expected} vertices, read {len(points)}")
-    return points, intensity
+    if with_rings and ply:
+        if layout is None:
+            rings = _ascii_ply_rings(path)
+        elif ring is not None:
+            dtype, offset, count = layout
+            rings = np.array(np.memmap(path, dtype=dtype, mode="r", offset=offset, shape=(count,))[ring])
+    return points, intensity, rings
+
+
+def _ring_name(names: Sequence[str]) -> str | None:
+    """Returns the first of ``RING_FIELDS`` among a file's property names, None if none is."""
+    return next((n for n in RING_FIELDS if n in names), None)
 
 
 _PLY_SIZES = {"char": 1, "uchar": 1, "int8": 1, "uint8": 1, "short": 2, "ushort": 2, "int16": 2, "uint16": 2}
@@ -304,7 +289,9 @@ def _ply_vertex_count(path: Path) -> int:
     return count
 
 
-def _read_text(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _read_text(
+    path: Path, with_intensity: bool, with_rings: bool
+) -> tuple[np.ndarray, np.ndarray | None, None]:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)  # "input contained no data": reported as empty below
         if with_intensity:  # x y z i: exactly four columns (six are x y z r g b)
@@ -314,16 +301,18 @@ def _read_text(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray
                 except ValueError:
                     continue
                 if rows.shape[1] >= 3:  # read once: the points are its first three columns either way
-                    return rows[:, :3], rows[:, 3] if rows.shape[1] == 4 else None
+                    return rows[:, :3], rows[:, 3] if rows.shape[1] == 4 else None, None
                 break
         try:
             points = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, dtype=np.float64)
         except ValueError:  # comma-separated
             points = np.loadtxt(path, comments=("#", "//"), usecols=(0, 1, 2), ndmin=2, delimiter=",")
-        return points, None
+        return points, None, None
 
 
-def _read_las(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _read_las(
+    path: Path, with_intensity: bool, with_rings: bool
+) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     import laspy
 
     if path.suffix.lower() == ".laz" and not laspy.LazBackend.detect_available():
@@ -332,10 +321,15 @@ def _read_las(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray 
         )
     las = laspy.read(path)
     points = np.stack([np.asarray(las.x), np.asarray(las.y), np.asarray(las.z)], axis=1)
-    return points, np.asarray(las.intensity, dtype=np.float64) if with_intensity else None
+    intensity = np.asarray(las.intensity, dtype=np.float64) if with_intensity else None
+    names = {n.lower(): n for n in las.point_format.dimension_names}  # an extra dimension's, any case
+    ring = _ring_name(list(names)) if with_rings else None
+    return points, intensity, None if ring is None else np.asarray(las[names[ring]])
 
 
-def _read_e57(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray | None]:
+def _read_e57(
+    path: Path, with_intensity: bool, with_rings: bool
+) -> tuple[np.ndarray, np.ndarray | None, None]:
     import pye57
 
     e57 = pye57.E57(str(path))
@@ -355,7 +349,7 @@ def _read_e57(path: Path, with_intensity: bool) -> tuple[np.ndarray, np.ndarray 
         v is not None and len(v) == len(p) for v, p in zip(values, scans, strict=True)
     )
     intensity = np.concatenate([v for v in values if v is not None]) if have else None
-    return points, intensity
+    return points, intensity, None  # a terrestrial scanner's: no laser rings
 
 
 # ---------------------------------------------------------------------------------------------- images

@@ -132,10 +132,11 @@ def test_a_distinct_rival_is_dismissed_only_when_the_best_holds_evidence_it_lack
     (``calibration._rival``): turned 3 deg about the optical axis it explains none of the lines the truth
     misses (turned about the vertical, the facades' window columns line up again: that is evidence), so it
     is dismissed; a twin explaining exactly the same lines is not."""
-    from linereg.calibration import COVER_STEP_DEG, _frames, _rival
+    from dataclasses import replace
+
+    from linereg.calibration import COVER_STEP_DEG, _frames, _Refined, _rival, _seen
     from linereg.config import RegisterConfig
     from linereg.lines2d import detect
-    from linereg.pipeline import view_score
     from linereg.significance import SearchSpace
 
     scene, images, maps, extrinsic = rig
@@ -143,14 +144,19 @@ def test_a_distinct_rival_is_dismissed_only_when_the_best_holds_evidence_it_lack
     guess = Prior(cam_from_world=extrinsic, sigma_rot_deg=5.0, radius_m=0.5)
     cam = scene.camera.undistorted()
     frames = _frames([detect(im, scene.camera) for im in images], maps, [cam] * len(images), guess, config)
-    seen = [view_score(f.view, f.image, f.camera, extrinsic, config.score) for f in frames]
-    value = sum(score.value for score, _ in seen)
     space = SearchSpace(1.0, 27, COVER_STEP_DEG * np.sqrt(3) / 2)
-    turned = make_cam_from_world(Rotation.from_rotvec(np.radians([0, 0, 3.0])).as_matrix() @ extrinsic[:3, :3], extrinsic[:3, 3])  # fmt: skip
-    assert _rival(frames, extrinsic, seen, value, [(value, turned)], config, space) == ""
-    twin = _rival(frames, extrinsic, seen, value, [(value, extrinsic.copy())], config, space)
+
+    def refined(pose: np.ndarray) -> _Refined:
+        return _Refined(pose, [], _seen(frames, pose, config))
+
+    best = refined(extrinsic)
+    turned = refined(make_cam_from_world(Rotation.from_rotvec(np.radians([0, 0, 3.0])).as_matrix() @ extrinsic[:3, :3], extrinsic[:3, 3]))  # fmt: skip
+    within = replace(config, decide=replace(config.decide, margin=1.0))  # every rival within the margin
+    assert _rival(frames, best, [turned], within, space) == ""
+    twin = _rival(frames, best, [refined(extrinsic.copy())], within, space)
     assert twin.startswith("ambiguous: a distinct pose") and "chance poses would" in twin
-    assert _rival(frames, extrinsic, seen, value, [(0.5 * value, extrinsic.copy())], config, space) == ""
+    assert turned.value < (1.0 - config.decide.margin) * best.value  # below the margin: not a rival
+    assert _rival(frames, best, [turned], config, space) == ""
 
 
 def test_a_near_basin_counts_in_the_spread_by_its_odds_across_the_photos():
