@@ -459,7 +459,8 @@ def near_basins(
 ) -> list[np.ndarray]:
     """Returns the other basins of the score next to the ``answer`` (its pose refined, its occlusion-aware
     Score, seeing the (K, 6) map parts ``seen``): solved (``solve_locally``) from it turned by
-    ``basin_turn_deg`` each way about each camera axis, refined twice as it was, kept when they are neither
+    ``basin_turn_deg`` each way about each camera axis, refined twice as it was (once when the first
+    round is back at the answer, ``same_pose``), kept when they are neither
     the answer nor distinct from it (``differs``) and a distinct pose there would be a rival too: they score
     within the margin, and neither the precision test (``sharp_dismisses``) nor the advantage test (what
     the answer explains beyond one significant, the reverse not: ``advantage_nfa``) sets them aside, as
@@ -479,7 +480,10 @@ def near_basins(
         )
         if q is None:
             return None
-        return refined_pose(view, image, camera, refined_pose(view, image, camera, q[0], config), config)
+        once = refined_pose(view, image, camera, q[0], config)
+        if same_pose(once, best):  # back in the answer's basin: a second round starts where the answer is
+            return once
+        return refined_pose(view, image, camera, once, config)
 
     found: list[np.ndarray] = []
     mine = answer.score.matches(dc.min_cover)
