@@ -6,10 +6,16 @@ res = linereg.register(lines2d, lines3d, cam)   # (N, 4) pixels, (M, 6) world me
 res.success, res.cam_from_world, res.matches, res.covariance
 """
 
-from .camera import Camera
-from .config import RegisterConfig
-from .errors import FileFormatError, InvalidInputError, LineregError
-from .registration import Registration
+from pathlib import Path as _Path
+
+from ._kernel_cache import clear_stale as _clear_stale
+
+_clear_stale(_Path(__file__).parent)  # before any kernel loads: a cache compiled from older sources goes
+
+from .camera import Camera  # noqa: E402
+from .config import RegisterConfig  # noqa: E402
+from .errors import FileFormatError, InvalidInputError, LineregError  # noqa: E402
+from .registration import Registration  # noqa: E402
 
 __all__ = [
     "Calibration",
