@@ -143,3 +143,36 @@ def test_an_unknown_scene_is_refused_naming_the_sets_found(tmp_path):
     )
     with pytest.raises(InvalidInputError, match=r"--scene kitchen: .*found: room_a"):
         sequence.run(args)
+
+
+def test_a_real_sequence_is_evaluated_once_per_odometry_draw(tmp_path, monkeypatch, capsys):
+    import json
+
+    import numpy as np
+
+    _sequence_set(tmp_path / "data" / "room_a", 3)
+    problem = sequence.real_problem(tmp_path / "data" / "room_a")
+    again = sequence.with_odometry(problem, 0)
+    other = sequence.with_odometry(problem, 1)
+    assert all(np.array_equal(a, b) for a, b in zip(problem["relative"], again["relative"], strict=True))
+    assert not all(np.array_equal(a, b) for a, b in zip(problem["relative"], other["relative"], strict=True))
+    assert other["frames"] is problem["frames"] and other["truth"] is problem["truth"]
+    drawn = []
+
+    def evaluate(p, args, out):  # the rows themselves are the walks' tests' business
+        drawn.append((out.name, p["relative"][0]))
+        return {"rows": {"smoothed": {"within": 0.5 * len(drawn), "wrong": 0}}}
+
+    monkeypatch.setattr(sequence, "evaluate", evaluate)
+    parser = argparse.ArgumentParser()
+    sequence.configure(parser)
+    out = tmp_path / "o"
+    argv = ["--scene", "room_a", "--data", str(tmp_path / "data"), "--out", str(out)]
+    sequence.run(parser.parse_args([*argv, "--odometry-seeds", "0", "1"]))
+    assert [name for name, _ in drawn] == ["room_a-odometry0", "room_a-odometry1"]
+    assert np.array_equal(drawn[0][1], problem["relative"][0])
+    assert np.array_equal(drawn[1][1], other["relative"][0])
+    assert "smoothed" in capsys.readouterr().out
+    assert set(json.loads((out / "results.json").read_text())) == {"room_a-odometry0", "room_a-odometry1"}
+    with pytest.raises(InvalidInputError, match="--odometry-seeds must differ"):
+        sequence.run(parser.parse_args([*argv, "--odometry-seeds", "2", "2"]))

@@ -63,6 +63,14 @@ def configure(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--good-pos-m", type=float, default=0.1, help="'within': this close to the truth")
     parser.add_argument("--good-rot-deg", type=float, default=2.0, help="... and this little turned")
     parser.add_argument(
+        "--odometry-seeds",
+        type=int,
+        nargs="+",
+        default=[0],
+        help="real sequences: the simulated odometry drawn from each of these seeds in turn (default 0), "
+        "one evaluation each: how much a row owes to one draw of its odometry",
+    )
+    parser.add_argument(
         "--max-speed",
         type=float,
         default=2.0,
@@ -78,8 +86,11 @@ def run(args: argparse.Namespace) -> int:
     check_output_dir("--out", args.out)
     from ..errors import InvalidInputError
 
-    if len(set(args.seeds)) != len(args.seeds):
-        raise InvalidInputError(f"--seeds must differ, got {args.seeds}")
+    for flag, values in (("--seeds", args.seeds), ("--odometry-seeds", args.odometry_seeds)):
+        if len(set(values)) != len(values):
+            raise InvalidInputError(f"{flag} must differ, got {values}")
+        if any(v < 0 for v in values):
+            raise InvalidInputError(f"{flag} must be >= 0, got {values}")
     data = args.data or default_data_dir()
     sets = real_sequences(data)
     scene = KITCHEN if args.scene == "kitchen" else args.scene
@@ -99,7 +110,13 @@ def run(args: argparse.Namespace) -> int:
         if not sets:
             print(f"real sequences: none under {data} (a set folder with sequence/frames.json), skipped")
         for name in sets if scene in ("real", "all") else [scene]:
-            summary[name] = evaluate(real_problem(data / name), args, args.out / name)
+            problem = real_problem(data / name)
+            draws = args.odometry_seeds
+            keys = [name if len(draws) == 1 else f"{name}-odometry{seed}" for seed in draws]
+            for key, seed in zip(keys, draws, strict=True):
+                summary[key] = evaluate(with_odometry(problem, seed), args, args.out / key)
+            if len(draws) > 1:
+                _print_draws(name, draws, [summary[key] for key in keys])
     from .. import io
 
     io.write_json_atomic(args.out / "results.json", summary)
@@ -155,7 +172,6 @@ def real_problem(folder: Path) -> dict[str, Any]:
     from ..camera import Camera
     from ..errors import FileFormatError
     from ..map.linemap import LineMap
-    from ..sim import paths
 
     meta_path = folder / "sequence" / "frames.json"
     try:
@@ -177,11 +193,19 @@ def real_problem(folder: Path) -> dict[str, Any]:
     frames = [io.read_image(folder / "sequence" / f["file"]) for f in meta["frames"]]
     truth = np.array([f["T_cam_from_world"] for f in meta["frames"]], dtype=np.float64)
     times = np.array([f["timestamp"] for f in meta["frames"]], dtype=np.float64)
-    relative, covariances = paths.drifting_odometry(truth, np.random.default_rng(0))
     print(f"{folder.name}: map of {len(line_map)} segments, {len(frames)} frames")
     problem = dict(name=folder.name, line_map=line_map, camera=camera, frames=frames, times=times)
     blank = np.zeros(len(frames), bool)
-    return problem | dict(truth=truth, relative=relative, covariances=covariances, blank=blank)
+    return with_odometry(problem | dict(truth=truth, blank=blank), 0)
+
+
+def with_odometry(problem: dict[str, Any], seed: int) -> dict[str, Any]:
+    """Returns a real sequence's ``problem`` with its odometry simulated from its ground truth by
+    ``paths.drifting_odometry`` with the generator of ``seed`` (the bench's own draw: 0)."""
+    from ..sim import paths
+
+    relative, covariances = paths.drifting_odometry(problem["truth"], np.random.default_rng(seed))
+    return problem | dict(relative=relative, covariances=covariances)
 
 
 def evaluate(p: dict[str, Any], args: argparse.Namespace, out: Path) -> dict[str, Any]:
@@ -502,6 +526,14 @@ def _print_seeds(seeds: list[int], results: list[dict[str, Any]]) -> None:
         print(f"claims beyond their reported 3 sigma (NEES), all walks: {', '.join(beyond)}")
     ratios = [r["rows"]["smoothed"]["ate_m_same_frames"] / r["rows"]["per-frame"]["ate_m"] for r in results]
     print(f"smoothed ATE / per-frame ATE on the per-frame frames: {'  '.join(f'{x:.2f}' for x in ratios)}")
+
+
+def _print_draws(name: str, seeds: list[int], results: list[dict[str, Any]]) -> None:
+    """Prints every row's share of frames within and wrong claims per odometry draw of one sequence."""
+    print(f"\n{name}, odometry seeds {' '.join(map(str, seeds))}: frames within / wrong claims per draw")
+    for row_name in results[0]["rows"]:
+        cells = [r["rows"][row_name] for r in results]
+        print(f"{row_name:<14} " + "  ".join(f"{100 * c['within']:5.1f} % / {c['wrong']:3d}" for c in cells))
 
 
 # a row's keys the table shows (or that need no line): the rest are printed as JSON below it
