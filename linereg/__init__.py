@@ -6,11 +6,9 @@ res = linereg.register(lines2d, lines3d, cam)   # (N, 4) pixels, (M, 6) world me
 res.success, res.cam_from_world, res.matches, res.covariance
 """
 
-from pathlib import Path as _Path
-
 from ._kernel_cache import clear_stale as _clear_stale
 
-_clear_stale(_Path(__file__).parent)  # before any kernel loads: a cache compiled from older sources goes
+_clear_stale()  # before any kernel loads: a cache compiled from older sources goes
 
 from .camera import Camera  # noqa: E402
 from .config import RegisterConfig  # noqa: E402

@@ -27,8 +27,8 @@ def fingerprint(package: Path) -> str:
     return digest.hexdigest()
 
 
-def clear_stale(package: Path) -> bool:
-    """Empties ``package``'s kernel cache (its ``__pycache__/*.nbi``, ``*.nbc``) when its sources changed
+def clear_stale(package: Path = Path(__file__).parent) -> bool:
+    """Empties ``package``'s (this one's by default) kernel cache (its ``__pycache__/*.nbi``, ``*.nbc``) when its sources changed
     since the cache was filled, and records their fingerprint. Returns True if it emptied the cache. A
     package it cannot write to (a read-only install) is left alone: numba then caches elsewhere or not."""
     try:
@@ -36,7 +36,7 @@ def clear_stale(package: Path) -> bool:
         now = fingerprint(package)
         if stamp.is_file() and stamp.read_text() == now:
             return False
-        for cached in [*package.rglob("__pycache__/*.nbi"), *package.rglob("__pycache__/*.nbc")]:
+        for cached in package.rglob("__pycache__/*.nb[ic]"):
             cached.unlink(missing_ok=True)
         stamp.parent.mkdir(exist_ok=True)
         partial = stamp.with_name(f"{STAMP}.{os.getpid()}")

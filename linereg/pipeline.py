@@ -460,8 +460,8 @@ def near_basins(
     """Returns the other basins of the score next to the ``answer`` (its pose refined, its occlusion-aware
     Score, seeing the (K, 6) map parts ``seen``): solved (``solve_locally``) from it turned by
     ``basin_turn_deg`` each way about each camera axis, refined twice as it was (once when the first
-    round is back at the answer, ``same_pose``), kept when they are neither
-    the answer nor distinct from it (``differs``) and a distinct pose there would be a rival too: they score
+    round is back at the answer, ``same_pose``), kept when they are neither the answer nor distinct from
+    it (``differs``) and a distinct pose there would be a rival too: they score
     within the margin, and neither the precision test (``sharp_dismisses``) nor the advantage test (what
     the answer explains beyond one significant, the reverse not: ``advantage_nfa``) sets them aside, as
     they set a distinct rival aside. Poses the decision calls one answer that the fit's curvature at it
